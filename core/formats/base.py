@@ -1,0 +1,206 @@
+"""Common model of a parsed mesh file: welded parts for the engine, patch-back writing.
+
+Each reader (``obj``, ``ply``, ``stl``, ``off``, ``gltf``, ``tds``) returns a
+:class:`MeshDocument` subclass.  A document keeps the original bytes and, per part, the
+mapping from every *stored* vertex slot (file order) to its welded vertex, so that
+:meth:`MeshDocument.write` can patch exactly the coordinates that moved.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from core.errors import LimitExceededError, MeshFormatError
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Resource limits checked *before* allocating (declared counts against actual bytes)."""
+
+    max_bytes: int = 256 * 1024 * 1024
+    max_vertices: int = 5_000_000
+    max_faces: int = 10_000_000
+    max_meshes: int = 1024
+    max_json_bytes: int = 16 * 1024 * 1024
+
+    def check(self, what: str, value: int) -> None:
+        """Raise :class:`LimitExceededError` when ``value`` exceeds the limit named ``what``.
+
+        ``what`` is one of ``"bytes"``, ``"vertices"``, ``"faces"``, ``"meshes"``, ``"json_bytes"``.
+        """
+        limit = getattr(self, f"max_{what}")
+        if value > limit:
+            raise LimitExceededError(what, int(value), int(limit))
+
+
+DEFAULT_LIMITS = Limits()
+
+
+@dataclass
+class MeshPart:
+    """One triangle mesh of a file, welded for the engine.
+
+    Attributes
+    ----------
+    name : str
+        Mesh name from the file (object/group/node/mesh name), or ``"mesh0"``...
+    vertices : (n, 3) float64
+        Unique positions (exactly equal stored positions welded together).
+    faces : (m, 3) int64
+        Triangles into ``vertices`` (polygons fan-triangulated; faces that collapse on weld dropped).
+    slot_to_vertex : (k,) int64
+        For every stored vertex slot of this part, in file order, its welded vertex index.
+    """
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    slot_to_vertex: np.ndarray = field(repr=False)
+
+
+def weld(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weld bit-identical positions.
+
+    Parameters
+    ----------
+    positions : (k, 3) float
+        Stored vertex positions (slots).
+    triangles : (m, 3) int
+        Triangles into the slots.
+
+    Returns
+    -------
+    vertices : (n, 3) float64
+        Unique positions, in order of first appearance among the slots.
+    faces : (m', 3) int64
+        Triangles into ``vertices`` with degenerate (repeated-vertex) triangles removed.
+    slot_to_vertex : (k,) int64
+        Welded index of every slot.
+    """
+    pos = np.ascontiguousarray(np.asarray(positions, dtype=np.float64).reshape(-1, 3))
+    if not np.all(np.isfinite(pos)):
+        raise MeshFormatError("non-finite vertex coordinate (NaN or Inf)")
+    pos = pos + 0.0  # turn -0.0 into +0.0 so that equal positions compare equal bytewise
+    rows = pos.view(np.dtype((np.void, 24))).ravel()
+    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
+    # renumber unique rows by first appearance so welding keeps the file's vertex order
+    order = np.argsort(first, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    slot_to_vertex = rank[inverse.ravel()].astype(np.int64)
+    vertices = pos[first[order]]
+    tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    if tri.size and (tri.min() < 0 or tri.max() >= len(pos)):
+        raise MeshFormatError("face index out of range")
+    faces = slot_to_vertex[tri] if tri.size else np.zeros((0, 3), np.int64)
+    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    return vertices, faces[keep], slot_to_vertex
+
+
+def fan_triangulate(counts: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """Fan-triangulate polygons given as a flat index list.
+
+    Parameters
+    ----------
+    counts : (p,) int
+        Number of corners of each polygon (>= 3).
+    indices : (sum(counts),) int
+        Corner indices, polygon after polygon.
+
+    Returns
+    -------
+    (sum(counts - 2), 3) int64 triangles.
+    """
+    counts = np.asarray(counts, dtype=np.int64)
+    indices = np.asarray(indices, dtype=np.int64)
+    if counts.size == 0:
+        return np.zeros((0, 3), np.int64)
+    if counts.min() < 3:
+        raise MeshFormatError("polygon with fewer than 3 corners")
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    ntri = counts - 2
+    poly = np.repeat(np.arange(counts.size), ntri)
+    k = np.arange(ntri.sum()) - np.repeat(np.cumsum(ntri) - ntri, ntri)
+    s = starts[poly]
+    return np.stack([indices[s], indices[s + k + 1], indices[s + k + 2]], axis=1)
+
+
+class MeshDocument:
+    """A parsed mesh file.
+
+    Subclasses set the attributes below and implement :meth:`_patch`.
+
+    Attributes
+    ----------
+    format : str
+        ``"obj"``, ``"ply"``, ``"stl"``, ``"off"``, ``"glb"``, ``"gltf"`` or ``"3ds"``.
+    encoding : str
+        ``"ascii"``, ``"binary_little_endian"``, ``"binary_big_endian"`` (PLY, and ``"binary"``
+        for STL/GLB/3DS).
+    media_type : str
+        MIME type to send the file back with.
+    extension : str
+        Canonical extension without dot (``"ply"``).
+    parts : list of MeshPart
+        Welded meshes.
+    decimals : int or None
+        Text formats: decimals used when printing moved coordinates (the most found in the
+        source's vertex lines); ``None`` for binary formats and exponent notation.
+    storage_dtype : numpy dtype or None
+        Binary formats: dtype of stored coordinates (float32 mostly).
+    """
+
+    format: str = ""
+    encoding: str = ""
+    media_type: str = "application/octet-stream"
+    extension: str = ""
+    decimals: int | None = None
+    storage_dtype: np.dtype | None = None
+
+    def __init__(self, data: bytes, parts: list[MeshPart]) -> None:
+        self.data = data
+        self.parts = parts
+
+    def quantize(self, vertices: np.ndarray, decimals: int | None = None) -> np.ndarray:
+        """Positions as a :meth:`write` then a new read would give them back.
+
+        Parameters
+        ----------
+        vertices : (n, 3) float64
+        decimals : int, optional
+            Text formats: override of :attr:`decimals`.
+        """
+        v = np.asarray(vertices, dtype=np.float64)
+        if self.storage_dtype is not None:
+            return v.astype(self.storage_dtype).astype(np.float64)
+        d = self.decimals if decimals is None else decimals
+        if d is None:
+            return v
+        return np.round(v, d)
+
+    def write(self, vertices: list[np.ndarray], decimals: int | None = None) -> bytes:
+        """Bytes of the same file with the parts' vertices at the new positions.
+
+        Only vertex slots whose welded vertex moved are rewritten; every other byte is kept.
+
+        Parameters
+        ----------
+        vertices : list of (n_i, 3) float64
+            New welded positions, one array per part (same shapes as ``parts[i].vertices``).
+        decimals : int, optional
+            Text formats: digits after the decimal point for rewritten coordinates.
+        """
+        if len(vertices) != len(self.parts):
+            raise ValueError("one vertex array per part expected")
+        moved: list[np.ndarray] = []
+        for part, v in zip(self.parts, vertices, strict=True):
+            v = np.asarray(v, dtype=np.float64)
+            if v.shape != part.vertices.shape:
+                raise ValueError(f"part {part.name!r}: expected shape {part.vertices.shape}, got {v.shape}")
+            moved.append(np.flatnonzero(np.any(v != part.vertices, axis=1)))
+        return self._patch(vertices, moved, decimals)
+
+    def _patch(self, vertices: list[np.ndarray], moved: list[np.ndarray], decimals: int | None) -> bytes:
+        raise NotImplementedError
