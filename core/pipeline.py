@@ -1,0 +1,194 @@
+"""File-level embed / detect / capacity: formats + engine + verification + reports."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from core.api import (
+    DEFAULT_METHOD,
+    METHODS,
+    CapacityReport,
+    DetectResult,
+    EmbeddedFile,
+    EmbedReport,
+    Progress,
+)
+from core.coding import (
+    CRC_BITS,
+    KEY_CODE_BITS,
+    MAX_PAYLOAD_BITS,
+    codeword_length,
+    encode,
+    parse_payload,
+)
+from core.detection import detect_analyses
+from core.errors import CapacityError, DegenerateMeshError, PayloadError
+from core.formats import DEFAULT_LIMITS, MeshDocument, read_mesh
+from core.mesh import adjacency, bbox_diagonal
+from core.sync import vertex_labels
+from core.watermark import TOL, Analysis, analyse, embed_arrays
+
+MAX_KEY_BYTES = 4096
+
+
+def _check_key(key: str | bytes) -> None:
+    raw = key.encode("utf-8") if isinstance(key, str) else key
+    if not isinstance(raw, bytes | bytearray) or not 1 <= len(raw) <= MAX_KEY_BYTES:
+        raise PayloadError(f"key must be 1 to {MAX_KEY_BYTES} bytes")
+
+
+def _check_method(method: str) -> None:
+    if method not in METHODS:
+        raise PayloadError(f"method must be one of {', '.join(METHODS)}")
+
+
+def _strength(strength: float | None) -> float:
+    s = TOL.strength if strength is None else float(strength)
+    if not np.isfinite(s) or not 0.0 < s <= 1.0:
+        raise PayloadError("strength must be in (0, 1]")
+    return s
+
+
+def _usable_parts(doc: MeshDocument) -> list[int]:
+    idx = [i for i, p in enumerate(doc.parts) if len(p.faces) > 0 and len(p.vertices) >= 4]
+    if not idx:
+        raise DegenerateMeshError("the file has no triangle mesh with at least 4 vertices")
+    return idx
+
+
+def _analyses(doc: MeshDocument, parts: list[int], key: str | bytes, methods: list[str],
+              vertices: list[np.ndarray] | None = None) -> dict[str, list[Analysis]]:
+    out: dict[str, list[Analysis]] = {m: [] for m in methods}
+    for i in parts:
+        v = doc.parts[i].vertices if vertices is None else vertices[i]
+        f = doc.parts[i].faces
+        adj = adjacency(f, len(v))
+        labels = vertex_labels(v, adj)
+        for m in methods:
+            out[m].append(analyse(v, f, key, m, adj=adj, labels=labels))
+    return out
+
+
+def _distortion(doc: MeshDocument, new: list[np.ndarray]) -> tuple[int, float, float, float]:
+    old_all = np.concatenate([p.vertices for p in doc.parts])
+    new_all = np.concatenate(new)
+    diag = bbox_diagonal(old_all) or 1.0
+    d = np.linalg.norm(new_all - old_all, axis=1)
+    moved = d > 0
+    rms = float(np.sqrt((d**2).mean())) / diag if d.size else 0.0
+    mx = float(d.max()) / diag if d.size else 0.0
+    haus = 0.0
+    if moved.any():
+        # vertex-set Hausdorff: unmoved vertices are in both sets, so only moved ones count
+        h1 = cKDTree(old_all).query(new_all[moved])[0].max()
+        h2 = cKDTree(new_all).query(old_all[moved])[0].max()
+        haus = float(max(h1, h2)) / diag
+    return int(moved.sum()), rms, mx, haus
+
+
+def embed_file(data: bytes, key: str | bytes, *, filename: str | None = None, payload: str | None = None,
+               method: str = DEFAULT_METHOD, strength: float | None = None, limits=None,
+               progress: Progress | None = None) -> EmbeddedFile:
+    _check_key(key)
+    _check_method(method)
+    s = _strength(strength)
+    bits = parse_payload(payload) if payload is not None else None
+    report = progress or (lambda f: None)
+    doc = read_mesh(data, filename, limits or DEFAULT_LIMITS)
+    report(0.1)
+    parts = _usable_parts(doc)
+    codeword = encode(key, bits)
+    L = len(codeword)
+    decimals = doc.decimals
+    tries = [decimals] if decimals is None else [decimals, decimals + 2, decimals + 4, 17]
+    for attempt, dec in enumerate(tries):
+        new = [p.vertices.copy() for p in doc.parts]
+        stats = []
+        carriers = skipped = 0
+        for k, i in enumerate(parts):
+            p = doc.parts[i]
+            v, st = embed_arrays(p.vertices, p.faces, key, codeword, method, s,
+                                 quantize=lambda x, d=dec: doc.quantize(x, d))
+            new[i] = v
+            stats.append(st)
+            carriers += st.carriers
+            skipped += st.skipped
+            report(0.1 + 0.6 * (k + 1) / len(parts) / len(tries) * (attempt + 1))
+        if carriers < L:
+            raise CapacityError(
+                f"too little capacity: {carriers} carriers for a {L}-bit codeword "
+                f"({'32-bit key-derived code' if bits is None else f'{len(bits)}-bit payload'} with "
+                f"{'' if bits is None else 'CRC-32 and '}Hamming(7,4)) at strength {s}",
+                carriers=carriers, needed=L)
+        check = detect_analyses(_analyses(doc, parts, key, [method], new), key, bits)
+        ok = check.detected and (bits is not None or check.key_derived)
+        if ok or attempt == len(tries) - 1:
+            break
+    report(0.85)
+    if not ok:
+        raise CapacityError("the watermark could not be made readable on this mesh at this strength "
+                            f"({carriers} carriers, {skipped} over the displacement cap)",
+                            carriers=carriers, needed=L)
+    out = doc.write(new, decimals=dec) if dec is not None else doc.write(new)
+    moved, rms, mx, haus = _distortion(doc, new)
+    part_info = []
+    for k, i in enumerate(parts):
+        part_info.append({"name": doc.parts[i].name, "vertices": int(len(doc.parts[i].vertices)),
+                          "carriers": stats[k].carriers, "skipped": stats[k].skipped,
+                          "moved": stats[k].moved})
+    rep = EmbedReport(method=method, strength=s, payload_bits=KEY_CODE_BITS if bits is None else len(bits),
+                      key_derived=bits is None, codeword_bits=L, carriers=carriers,
+                      copies=round(carriers / L, 3), skipped=skipped, vertices_moved=moved,
+                      rms_displacement=rms, max_displacement=mx, hausdorff=haus, decimals=dec,
+                      parts=part_info)
+    report(1.0)
+    return EmbeddedFile(out, rep, doc.format, doc.media_type, doc.extension)
+
+
+def detect_file(data: bytes, key: str | bytes, *, filename: str | None = None, payload: str | None = None,
+                method: str | None = None, limits=None, progress: Progress | None = None) -> DetectResult:
+    _check_key(key)
+    if method is not None:
+        _check_method(method)
+    bits = parse_payload(payload) if payload is not None else None
+    report = progress or (lambda f: None)
+    doc = read_mesh(data, filename, limits or DEFAULT_LIMITS)
+    report(0.2)
+    parts = _usable_parts(doc)
+    methods = [method] if method else list(METHODS)
+    res = detect_analyses(_analyses(doc, parts, key, methods), key, bits)
+    report(1.0)
+    return res
+
+
+def capacity_file(data: bytes, *, filename: str | None = None, method: str = DEFAULT_METHOD,
+                  strength: float | None = None, limits=None) -> CapacityReport:
+    _check_method(method)
+    s = _strength(strength)
+    doc = read_mesh(data, filename, limits or DEFAULT_LIMITS)
+    parts = _usable_parts(doc)
+    key = b"meshmark-capacity-probe"
+    carriers = 0
+    new = [p.vertices.copy() for p in doc.parts]
+    info = []
+    rng = np.random.default_rng(0)
+    for i in parts:
+        p = doc.parts[i]
+        cw = rng.integers(0, 2, codeword_length(None)).astype(np.uint8)
+        v, st = embed_arrays(p.vertices, p.faces, key, cw, method, s, quantize=doc.quantize)
+        new[i] = v
+        carriers += st.carriers
+        info.append({"name": p.name, "vertices": int(len(p.vertices)), "carriers": st.carriers})
+    max_bits = 0
+    for n in range(MAX_PAYLOAD_BITS, 0, -1):
+        if codeword_length(n) <= carriers:
+            max_bits = n
+            break
+    _, rms, mx, _ = _distortion(doc, new)
+    return CapacityReport(method=method, strength=s, carriers=carriers, max_payload_bits=max_bits,
+                          copies_of_default=round(carriers / codeword_length(None), 3),
+                          expected_rms_displacement=rms, expected_max_displacement=mx, parts=info)
+
+
+__all__ = ["embed_file", "detect_file", "capacity_file", "CRC_BITS"]

@@ -1,0 +1,225 @@
+"""The two local-moment watermarking methods on arrays: analysis, embedding, reading.
+
+A carrier ``i`` (see :mod:`core.sync`) is described by its neighbours only: their mean
+``mu`` (eq. 2) and covariance ``Sigma`` (eq. 3), eigenvalues ``l1 <= l2 <= l3`` with
+eigenvectors ``e1, e2, e3``, and the local scale ``s = sqrt(trace Sigma)``.  Every quantity
+below is dimensionless (divided by ``s``), so similarity transforms change nothing.
+
+``planes`` (eqs. 15-20)
+    ``Q = e1`` (least-variance axis of the neighbours: the paper's mean normal depends on the
+    carrier), ``Psi = sqrt(l1)`` (eq. 16).  Statistic ``z = (|(V - mu).Q| - tau) / s`` with
+    ``tau = max(Psi, PLANE_FLOOR * s)``; bit 1 inside the planes (z < 0), bit 0 outside.
+``ellipsoids`` (eqs. 21-25)
+    Mahalanobis radius ``rho`` of ``V`` in the regularised ``Sigma + ALPHA s^2 I`` against
+    ``K = 1``; ``z = (rho - 1) sqrt(l1') / s`` (the distance to the ellipsoid along ``e1`` in
+    units of ``s``); bit 1 inside, bit 0 outside.
+
+Embedding moves a carrier just across its boundary, to ``|z| = strength``; boundaries never
+depend on the carrier itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.hashing import derive, mix64
+from core.mesh import Adjacency, adjacency, bbox_diagonal, neighbour_moments
+from core.sync import Labels, select_carriers, vertex_labels
+
+METHODS = ("ellipsoids", "planes")
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """Every constant of the method in one place (see core/README.md for how they were chosen)."""
+
+    strength: float = 0.07          # default margin |z| after embedding, in units of the local scale
+    plane_floor: float = 0.07       # planes: tau >= plane_floor * s (so bit 1 is reachable on flat rings)
+    alpha: float = 0.05             # ellipsoids: Sigma regularised by alpha * s^2 * I
+    radius: float = 0.8             # ellipsoids: K
+    min_flatness: float = 0.05      # l2 / l3 of the ring: below, the ring is a line (skip)
+    max_scale: float = 4.0          # skip carriers whose scale exceeds max_scale x median scale
+    max_local_move: float = 0.8     # displacement cap, units of the local scale
+    max_move: float = 5e-3          # displacement cap, fraction of the bounding-box diagonal...
+    coarse_move: float = 0.25       # ...or this fraction of the median local scale on coarse meshes
+    verify_rounds: int = 4          # embed -> re-analyse -> fix rounds
+
+
+TOL = Tolerances()
+
+
+@dataclass
+class Analysis:
+    """Carriers of one mesh under one key and method, with their boundaries and statistics."""
+
+    carriers: np.ndarray   # (k,) vertex indices
+    slot_hash: np.ndarray  # (k,) uint64 keyed hash deciding the codeword slot
+    z: np.ndarray          # (k,) signed statistic: > 0 reads bit 0, < 0 reads bit 1
+    mu: np.ndarray         # (k, 3)
+    axes: np.ndarray       # (k, 3, 3) eigenvectors (columns) of Sigma, ascending eigenvalues
+    lam: np.ndarray        # (k, 3) eigenvalues (regularised for ellipsoids)
+    scale: np.ndarray      # (k,)
+    regular: bool
+
+
+def _key_salts(key: str | bytes) -> tuple[np.uint64, np.uint64]:
+    return np.uint64(derive(key, "meshmark-prio")), np.uint64(derive(key, "meshmark-slot"))
+
+
+def statistic(method: str, v: np.ndarray, mu: np.ndarray, axes: np.ndarray, lam: np.ndarray,
+              scale: np.ndarray, tol: Tolerances = TOL) -> np.ndarray:
+    """Signed, dimensionless side of the boundary for carriers at positions ``v`` (k, 3)."""
+    y = np.einsum("kij,ki->kj", axes, v - mu)  # coordinates in the eigenbasis
+    if method == "planes":
+        tau = np.maximum(np.sqrt(np.maximum(lam[:, 0], 0.0)), tol.plane_floor * scale)
+        return (np.abs(y[:, 0]) - tau) / scale
+    rho = np.sqrt((y * y / lam).sum(axis=1))
+    return (rho - tol.radius) * np.sqrt(lam[:, 0]) / scale
+
+
+def analyse(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, method: str,
+            adj: Adjacency | None = None, labels: Labels | None = None,
+            tol: Tolerances = TOL) -> Analysis:
+    """Select the carriers of a mesh and read their statistics (the detector's view)."""
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}")
+    v = np.asarray(vertices, np.float64)
+    if adj is None:
+        adj = adjacency(faces, len(v))
+    if labels is None:
+        labels = vertex_labels(v, adj)
+    salt_p, salt_s = _key_salts(key)
+    prio = mix64(labels.labels ^ salt_p)
+    sel = select_carriers(adj, prio, labels.usable)
+    mu, sigma = neighbour_moments(v, adj, sel)
+    lam, axes = np.linalg.eigh(sigma)
+    lam = np.maximum(lam, 0.0)
+    s2 = lam.sum(axis=1)
+    scale = np.sqrt(s2)
+    ok = (scale > 0) & (lam[:, 1] > tol.min_flatness * np.maximum(lam[:, 2], 1e-300))
+    if ok.any():
+        ok &= scale <= tol.max_scale * np.median(scale[ok])
+    sel, mu, axes, lam, scale = sel[ok], mu[ok], axes[ok], lam[ok], scale[ok]
+    if method == "ellipsoids":
+        lam = lam + tol.alpha * (scale**2)[:, None]
+    z = statistic(method, v[sel], mu, axes, lam, scale, tol)
+    slot_hash = mix64(labels.labels[sel] ^ salt_s)
+    return Analysis(sel, slot_hash, z, mu, axes, lam, scale, labels.regular)
+
+
+def target_positions(method: str, a: Analysis, v: np.ndarray, bits: np.ndarray, margin: float,
+                     tol: Tolerances = TOL) -> np.ndarray:
+    """Positions that put carriers at ``v`` (k, 3) on the side of ``bits`` with ``|z| = margin``.
+
+    Carriers already on the right side with at least ``margin`` keep their position.
+    """
+    want = np.where(bits == 0, 1.0, -1.0)  # sign of z wanted
+    z = statistic(method, v, a.mu, a.axes, a.lam, a.scale, tol)
+    need = want * z < margin
+    y = np.einsum("kij,ki->kj", a.axes, v - a.mu)
+    sgn = np.where(y[:, 0] >= 0, 1.0, -1.0)
+    s = a.scale
+    if method == "planes":
+        tau = np.maximum(np.sqrt(a.lam[:, 0]), tol.plane_floor * s)
+        target = np.maximum(tau + want * margin * s, 0.0)
+        y[:, 0] = sgn * target
+    else:
+        l1 = a.lam[:, 0]
+        rho_t = np.maximum(tol.radius + want * margin * s / np.sqrt(l1), 0.0)
+        rt = (y[:, 1:] ** 2 / a.lam[:, 1:]).sum(axis=1)
+        fits = rho_t**2 >= rt
+        y0 = sgn * np.sqrt(np.maximum(rho_t**2 - rt, 0.0) * l1)
+        rho = np.sqrt((y * y / a.lam).sum(axis=1))
+        shrink = np.where(rho > 0, rho_t / np.maximum(rho, 1e-300), 1.0)
+        y = np.where(fits[:, None], np.column_stack([y0, y[:, 1:]]), y * shrink[:, None])
+    new = a.mu + np.einsum("kij,kj->ki", a.axes, y)
+    return np.where(need[:, None], new, v)
+
+
+@dataclass(frozen=True)
+class EmbedStats:
+    carriers: int
+    skipped: int
+    moved: int
+    rounds: int
+
+
+def embed_arrays(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, codeword: np.ndarray,
+                 method: str, strength: float, quantize=None, tol: Tolerances = TOL,
+                 slots=None) -> tuple[np.ndarray, EmbedStats]:
+    """Move carriers so that the detector reads ``codeword`` (already whitened).
+
+    Parameters
+    ----------
+    vertices, faces : arrays of the welded mesh.
+    codeword : (L,) uint8
+    strength : float
+        Margin ``|z|`` after embedding.
+    quantize : callable, optional
+        What storing the positions does to them (float32, printed decimals); the result is
+        verified after it.
+    slots : callable, optional
+        ``slots(analysis, L) -> (k,) int`` slot of every carrier (default: see :func:`assign_slots`).
+
+    Returns
+    -------
+    new_vertices : (n, 3) float64
+    stats : EmbedStats
+    """
+    slots = slots or assign_slots
+    v0 = np.asarray(vertices, np.float64)
+    adj = adjacency(faces, len(v0))
+    diag = bbox_diagonal(v0)
+    v = v0.copy()
+    global_cap = tol.max_move * diag
+    L = len(codeword)
+    skipped = np.zeros(len(v0), bool)
+    carriers = 0
+    rounds = 0
+    labels = vertex_labels(v0, adj)
+    for rounds in range(1, tol.verify_rounds + 1):
+        if rounds > 1 and not labels.regular:
+            pass  # connectivity labels cannot change; only the regular fallback needs recomputing
+        elif rounds > 1:
+            labels = vertex_labels(v, adj)
+        a = analyse(v, faces, key, method, adj=adj, labels=labels, tol=tol)
+        if rounds == 1:
+            carriers = len(a.carriers)
+            med = float(np.median(a.scale)) if len(a.scale) else 0.0
+            global_cap = max(tol.max_move * diag, tol.coarse_move * med)
+        bits = codeword[slots(a, L)]
+        margin = strength if rounds == 1 else 0.5 * strength
+        want = np.where(bits == 0, 1.0, -1.0)
+        bad = (want * a.z < margin) & ~skipped[a.carriers]
+        if not bad.any():
+            break
+        idx = a.carriers[bad]
+        sub = Analysis(idx, a.slot_hash[bad], a.z[bad], a.mu[bad], a.axes[bad], a.lam[bad], a.scale[bad],
+                       a.regular)
+        new = target_positions(method, sub, v[idx], bits[bad], strength, tol)
+        move = np.linalg.norm(new - v0[idx], axis=1)
+        cap = np.minimum(tol.max_local_move * sub.scale, global_cap)
+        okm = move <= cap
+        skipped[idx[~okm]] = True
+        moved_v = new[okm]
+        if quantize is not None:
+            moved_v = quantize(moved_v)
+        v[idx[okm]] = moved_v
+    moved = int(np.any(v != v0, axis=1).sum())
+    return v, EmbedStats(carriers, int(skipped.sum()), moved, rounds)
+
+
+def assign_slots(a: Analysis, L: int) -> np.ndarray:
+    """Codeword slot of every carrier.
+
+    Many carriers (>= 4 per slot): ``slot_hash mod L``, purely local, survives cropping.
+    Few carriers: carriers ranked by ``slot_hash`` take the slots in turn (dense ranks, so
+    equal hashes share a slot), which covers every slot as soon as there are ``L`` carriers.
+    """
+    h = a.slot_hash
+    if len(h) >= 4 * L:
+        return (h % np.uint64(L)).astype(np.int64)
+    _, rank = np.unique(h, return_inverse=True)
+    return (rank.ravel() % L).astype(np.int64)
