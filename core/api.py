@@ -132,3 +132,31 @@ def capacity_file(
     from core.pipeline import capacity_file as _impl
 
     return _impl(data, filename=filename, method=method, strength=strength, limits=limits)
+
+
+def embed_mesh(
+    vertices: Any,
+    faces: Any,
+    key: str | bytes,
+    *,
+    payload: str | None = None,
+    method: str = DEFAULT_METHOD,
+    strength: float | None = None,
+) -> tuple[Any, EmbedReport]:
+    """Array-level embedding: ``(n, 3)`` vertices and ``(m, 3)`` triangles in, new vertices out."""
+    from core.pipeline import embed_mesh as _impl
+
+    return _impl(vertices, faces, key, payload=payload, method=method, strength=strength)
+
+
+def detect_mesh(
+    meshes: list[tuple[Any, Any]],
+    key: str | bytes,
+    *,
+    payload: str | None = None,
+    method: str | None = None,
+) -> DetectResult:
+    """Array-level blind detection over one or several ``(vertices, faces)`` meshes."""
+    from core.pipeline import detect_mesh as _impl
+
+    return _impl(meshes, key, payload=payload, method=method)

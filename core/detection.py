@@ -26,10 +26,10 @@ from core.coding import (
     soft_decode,
     whitening,
 )
-from core.watermark import Analysis, assign_slots
+from core.watermark import HASHED_FROM, Analysis, assign_slots
 
-#: the key-derived code is accepted with at most this many bit errors out of 32 (P = 1.2e-7)
-KEY_CODE_MAX_ERRORS = 2
+#: the key-derived code is accepted with at most this many bit errors out of 32 (P = 7.7e-9)
+KEY_CODE_MAX_ERRORS = 1
 #: an expected payload is accepted without CRC when its p-value is below this
 EXPECTED_P_THRESHOLD = 1e-6
 
@@ -49,8 +49,8 @@ def adaptive_threshold(z: np.ndarray) -> float:
     return t
 
 
-def _votes(analyses: list[Analysis], key: str | bytes, L: int, adaptive: bool = False
-           ) -> tuple[np.ndarray, np.ndarray]:
+def _votes(analyses: list[Analysis], key: str | bytes, L: int, adaptive: bool = False,
+           ranked: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per-carrier slot and de-whitened soft vote in [-1, 1] (> 0 reads 0) for codeword length L.
 
     ``adaptive``: statistics are centred on :func:`adaptive_threshold` and scaled by their
@@ -61,7 +61,7 @@ def _votes(analyses: list[Analysis], key: str | bytes, L: int, adaptive: bool = 
     for a in analyses:
         if len(a.carriers) == 0:
             continue
-        s = assign_slots(a, L)
+        s = assign_slots(a, L, ranked)
         if adaptive:
             zc = a.z - adaptive_threshold(a.z)
             w = float(np.median(np.abs(zc))) or 1.0
@@ -86,6 +86,16 @@ def _decode(slots: np.ndarray, votes: np.ndarray, L: int):
     return soft_decode(log_odds(p) * sums), p
 
 
+#: decoding variants (adaptive threshold, slot assignment): the embedder's own, then the ones
+#: that survive attacks (global shifts of the statistics; crops that change the carrier count)
+VARIANTS = ((False, None), (True, None), (False, True), (True, True), (False, False), (True, False))
+
+
+def _same_as_auto(analyses: list[Analysis], L: int, ranked: bool | None) -> bool:
+    """A forced slot assignment that equals the automatic one for every part (already tried)."""
+    return ranked is not None and all((len(a.carriers) < HASHED_FROM * L) == ranked for a in analyses)
+
+
 def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
                     expected: np.ndarray | None = None) -> DetectResult:
     """Decide from the analyses of every part, for each method tried.
@@ -93,7 +103,7 @@ def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
     Candidates, in order: for each method, with the embedding's boundary then with the adaptive
     threshold, every explicit payload length (CRC test) and the key-derived code (bit errors).
     """
-    n_tries = 2 * len(per_method)
+    n_tries = len(VARIANTS) * len(per_method)
     lengths = [len(expected)] if expected is not None else list(range(1, MAX_PAYLOAD_BITS + 1))
     # chance that one random candidate passes: CRC (+ zero padding) or the key-code test
     fp_explicit = sum(2.0 ** -(CRC_BITS + (codeword_length(n) // 7 * 4 - n - CRC_BITS)) for n in lengths)
@@ -107,9 +117,11 @@ def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
     for method, analyses in per_method.items():
         carriers = int(sum(len(a.carriers) for a in analyses))
         parts = [{"carriers": int(len(a.carriers)), "regular_fallback": bool(a.regular)} for a in analyses]
-        for adaptive in (False, True):
+        for adaptive, ranked in VARIANTS:
             for L, ns in by_L.items():
-                slots, votes = _votes(analyses, key, L, adaptive)
+                if _same_as_auto(analyses, L, ranked):
+                    continue
+                slots, votes = _votes(analyses, key, L, adaptive, ranked)
                 if len(slots) == 0:
                     continue
                 dec, _ = _decode(slots, votes, L)
@@ -139,9 +151,9 @@ def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
                     if ok:
                         return res
                     best = res
-            if expected is None:
+            if expected is None and not _same_as_auto(analyses, codeword_length(None), ranked):
                 L = codeword_length(None)
-                slots, votes = _votes(analyses, key, L, adaptive)
+                slots, votes = _votes(analyses, key, L, adaptive, ranked)
                 if len(slots):
                     dec, _ = _decode(slots, votes, L)
                     errors = int((dec.bits[:KEY_CODE_BITS] != code).sum())

@@ -87,16 +87,64 @@ def _distortion(doc: MeshDocument, new: list[np.ndarray]) -> tuple[int, float, f
     return int(moved.sum()), rms, mx, haus
 
 
+class _ArrayDoc(MeshDocument):
+    """A :class:`MeshDocument` over plain arrays (no file behind it): float64, no rounding."""
+
+    format = "arrays"
+
+    def __init__(self, meshes: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        from core.formats import MeshPart, weld
+
+        parts = []
+        for k, (v, f) in enumerate(meshes):
+            v = np.asarray(v, np.float64).reshape(-1, 3)
+            f = np.asarray(f, np.int64).reshape(-1, 3)
+            if len(f) and (f.min() < 0 or f.max() >= len(v)):
+                raise PayloadError("face index out of range")
+            if not np.all(np.isfinite(v)):
+                raise PayloadError("non-finite vertex coordinate")
+            wv, wf, slots = weld(v, f)
+            parts.append(MeshPart(f"mesh{k}", wv, wf, slots))
+        super().__init__(b"", parts)
+
+
+def embed_mesh(vertices, faces, key: str | bytes, *, payload: str | None = None,
+               method: str = DEFAULT_METHOD, strength: float | None = None):
+    doc = _ArrayDoc([(vertices, faces)])
+    new, rep, _ = _embed_doc(doc, key, payload, method, strength, None)
+    part = doc.parts[0]
+    return new[0][part.slot_to_vertex], rep
+
+
+def detect_mesh(meshes, key: str | bytes, *, payload: str | None = None,
+                method: str | None = None) -> DetectResult:
+    return _detect_doc(_ArrayDoc(list(meshes)), key, payload, method)
+
+
 def embed_file(data: bytes, key: str | bytes, *, filename: str | None = None, payload: str | None = None,
                method: str = DEFAULT_METHOD, strength: float | None = None, limits=None,
                progress: Progress | None = None) -> EmbeddedFile:
     _check_key(key)
     _check_method(method)
-    s = _strength(strength)
-    bits = parse_payload(payload) if payload is not None else None
+    _strength(strength)
+    if payload is not None:
+        parse_payload(payload)
     report = progress or (lambda f: None)
     doc = read_mesh(data, filename, limits or DEFAULT_LIMITS)
     report(0.1)
+    new, rep, dec = _embed_doc(doc, key, payload, method, strength, report)
+    out = doc.write(new, decimals=dec) if dec is not None else doc.write(new)
+    report(1.0)
+    return EmbeddedFile(out, rep, doc.format, doc.media_type, doc.extension)
+
+
+def _embed_doc(doc: MeshDocument, key: str | bytes, payload: str | None, method: str,
+               strength: float | None, report: Progress | None):
+    _check_key(key)
+    _check_method(method)
+    s = _strength(strength)
+    bits = parse_payload(payload) if payload is not None else None
+    report = report or (lambda f: None)
     parts = _usable_parts(doc)
     codeword = encode(key, bits)
     L = len(codeword)
@@ -130,7 +178,6 @@ def embed_file(data: bytes, key: str | bytes, *, filename: str | None = None, pa
         raise CapacityError("the watermark could not be made readable on this mesh at this strength "
                             f"({carriers} carriers, {skipped} over the displacement cap)",
                             carriers=carriers, needed=L)
-    out = doc.write(new, decimals=dec) if dec is not None else doc.write(new)
     moved, rms, mx, haus = _distortion(doc, new)
     part_info = []
     for k, i in enumerate(parts):
@@ -142,8 +189,7 @@ def embed_file(data: bytes, key: str | bytes, *, filename: str | None = None, pa
                       copies=round(carriers / L, 3), skipped=skipped, vertices_moved=moved,
                       rms_displacement=rms, max_displacement=mx, hausdorff=haus, decimals=dec,
                       parts=part_info)
-    report(1.0)
-    return EmbeddedFile(out, rep, doc.format, doc.media_type, doc.extension)
+    return new, rep, dec
 
 
 def detect_file(data: bytes, key: str | bytes, *, filename: str | None = None, payload: str | None = None,
@@ -151,15 +197,24 @@ def detect_file(data: bytes, key: str | bytes, *, filename: str | None = None, p
     _check_key(key)
     if method is not None:
         _check_method(method)
-    bits = parse_payload(payload) if payload is not None else None
+    if payload is not None:
+        parse_payload(payload)
     report = progress or (lambda f: None)
     doc = read_mesh(data, filename, limits or DEFAULT_LIMITS)
     report(0.2)
-    parts = _usable_parts(doc)
-    methods = [method] if method else list(METHODS)
-    res = detect_analyses(_analyses(doc, parts, key, methods), key, bits)
+    res = _detect_doc(doc, key, payload, method)
     report(1.0)
     return res
+
+
+def _detect_doc(doc: MeshDocument, key: str | bytes, payload: str | None, method: str | None) -> DetectResult:
+    _check_key(key)
+    if method is not None:
+        _check_method(method)
+    bits = parse_payload(payload) if payload is not None else None
+    parts = _usable_parts(doc)
+    methods = [method] if method else list(METHODS)
+    return detect_analyses(_analyses(doc, parts, key, methods), key, bits)
 
 
 def capacity_file(data: bytes, *, filename: str | None = None, method: str = DEFAULT_METHOD,

@@ -211,15 +211,23 @@ def embed_arrays(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, code
     return v, EmbedStats(carriers, int(skipped.sum()), moved, rounds)
 
 
-def assign_slots(a: Analysis, L: int) -> np.ndarray:
+#: carriers per slot from which the embedder assigns slots by hash rather than by rank
+HASHED_FROM = 4
+
+
+def assign_slots(a: Analysis, L: int, ranked: bool | None = None) -> np.ndarray:
     """Codeword slot of every carrier.
 
-    Many carriers (>= 4 per slot): ``slot_hash mod L``, purely local, survives cropping.
-    Few carriers: carriers ranked by ``slot_hash`` take the slots in turn (dense ranks, so
-    equal hashes share a slot), which covers every slot as soon as there are ``L`` carriers.
+    Many carriers (>= ``HASHED_FROM`` per slot): ``slot_hash mod L``, purely local, survives
+    cropping.  Few carriers: carriers ranked by ``slot_hash`` take the slots in turn (dense ranks,
+    so equal hashes share a slot), which covers every slot as soon as there are ``L`` carriers.
+    ``ranked=None`` chooses by the number of carriers (the embedder); the detector tries both,
+    since cropping changes that number.
     """
     h = a.slot_hash
-    if len(h) >= 4 * L:
+    if ranked is None:
+        ranked = len(h) < HASHED_FROM * L
+    if not ranked:
         return (h % np.uint64(L)).astype(np.int64)
     _, rank = np.unique(h, return_inverse=True)
     return (rank.ravel() % L).astype(np.int64)
