@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 
 @dataclass(frozen=True)
@@ -39,27 +40,28 @@ class Adjacency:
 
 
 def adjacency(faces: np.ndarray, n_vertices: int) -> Adjacency:
-    """Build the 1-ring :class:`Adjacency` of ``faces`` (m, 3) over ``n_vertices`` vertices."""
+    """Build the 1-ring :class:`Adjacency` of ``faces`` (m, 3) over ``n_vertices`` vertices.
+
+    The half-edges are counted into a sparse matrix (scipy's counting sort, linear time) and
+    symmetrised, so every entry also says how many faces use the edge.
+    """
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     n = int(n_vertices)
-    e = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    key = e[:, 0] * n + e[:, 1]
-    ukey, counts = np.unique(key, return_counts=True)
-    a, b = ukey // n, ukey % n
+    a = f.ravel()
+    b = f[:, [1, 2, 0]].ravel()
+    half = sp.csr_matrix((np.ones(a.size, np.int32), (a, b)), shape=(n, n))
+    full = (half + half.T).tocsr()
+    full.sum_duplicates()
+    indptr = full.indptr.astype(np.int64)
+    indices = full.indices.astype(np.int64)
+    uses = full.data
+    degree = np.diff(indptr)
+    rows = np.repeat(np.arange(n, dtype=np.int64), degree)
     boundary = np.zeros(n, bool)
-    boundary[a[counts == 1]] = True
-    boundary[b[counts == 1]] = True
+    boundary[rows[uses == 1]] = True
     nonmanifold = np.zeros(n, bool)
-    nonmanifold[a[counts > 2]] = True
-    nonmanifold[b[counts > 2]] = True
-    rows = np.concatenate([a, b])
-    cols = np.concatenate([b, a])
-    order = np.lexsort((cols, rows))
-    rows, cols = rows[order], cols[order]
-    degree = np.bincount(rows, minlength=n).astype(np.int64)
-    indptr = np.zeros(n + 1, np.int64)
-    np.cumsum(degree, out=indptr[1:])
-    return Adjacency(indptr, cols, rows, degree, boundary, nonmanifold)
+    nonmanifold[rows[uses > 2]] = True
+    return Adjacency(indptr, indices, rows, degree, boundary, nonmanifold)
 
 
 def neighbour_moments(

@@ -24,19 +24,31 @@ import numpy as np
 from core.hashing import combine, mix64, segment_sum_u64
 from core.mesh import Adjacency
 
-#: rings of colour refinement (the label of a vertex depends on its ROUNDS-ring)
+#: rings of colour refinement (the label of a vertex depends on its ROUNDS-ring), then the
+#: larger neighbourhoods tried on regular meshes before the geometric fallback
 ROUNDS = 3
+ROUND_STEPS = (3, 6)
 #: below this share of distinct labels among interior vertices the mesh counts as regular
 REGULAR_SHARE = 0.5
 #: offset of the fallback grid, in cells (irrational, so that symmetric meshes do not sit on cell
 #: boundaries: a cube's faces would otherwise lie exactly on grid planes)
 GRID_OFFSET = np.array([0.381966, 0.2360679, 0.1458980])
+#: fallback grid cell = CELLS_PER_RADIUS x RMS radius / sqrt(vertex count), about half an edge
+CELLS_PER_RADIUS = 2.0
 #: valences a carrier may have
 MIN_DEGREE, MAX_DEGREE = 4, 12
 
 
-def wl_colours(adj: Adjacency, rounds: int = ROUNDS) -> np.ndarray:
+def wl_colours(adj: Adjacency, rounds: int = ROUNDS, start: np.ndarray | None = None,
+               first: int = 0) -> np.ndarray:
     """Colour refinement of the connectivity graph.
+
+    Parameters
+    ----------
+    rounds : int
+        Refinement rounds: the colour of a vertex then depends on its ``rounds``-ring.
+    start, first : optional
+        Resume from the colours ``start`` obtained after ``first`` rounds.
 
     Returns
     -------
@@ -44,9 +56,14 @@ def wl_colours(adj: Adjacency, rounds: int = ROUNDS) -> np.ndarray:
         Hash of each vertex's ``rounds``-ring connectivity (degree, boundary and non-manifold
         flags), independent of vertex numbering and of geometry.
     """
-    init = (adj.degree.astype(np.uint64) << np.uint64(2)) | (adj.boundary.astype(np.uint64) << np.uint64(1))
-    c = mix64(init | adj.nonmanifold.astype(np.uint64))
-    for t in range(rounds):
+    if start is None:
+        init = (adj.degree.astype(np.uint64) << np.uint64(2)) | (
+            adj.boundary.astype(np.uint64) << np.uint64(1))
+        c = mix64(init | adj.nonmanifold.astype(np.uint64))
+        first = 0
+    else:
+        c = start
+    for t in range(first, rounds):
         nb = mix64(c ^ np.uint64(0x5851F42D4C957F2D * (t + 1) % 2**64))[adj.indices]
         c = combine(c, segment_sum_u64(nb, adj.indptr))
     return c
@@ -54,10 +71,14 @@ def wl_colours(adj: Adjacency, rounds: int = ROUNDS) -> np.ndarray:
 
 def is_regular(colours: np.ndarray, usable: np.ndarray) -> bool:
     """True when connectivity labels cannot tell most usable vertices apart."""
-    k = int(usable.sum())
-    if k == 0:
+    # estimated on the colours whose low 4 bits are 0 (a deterministic 1/16 sample: equal colours
+    # are sampled together, so the share of distinct values is preserved)
+    sample = colours[usable & ((colours & np.uint64(15)) == 0)]
+    if sample.size < 16:
+        sample = colours[usable]
+    if sample.size == 0:
         return False
-    return np.unique(colours[usable]).size < REGULAR_SHARE * k
+    return np.unique(sample).size < REGULAR_SHARE * sample.size
 
 
 def frame_cells(points: np.ndarray, vertices: np.ndarray, cell: float) -> np.ndarray:
@@ -93,25 +114,46 @@ class Labels:
     labels: np.ndarray
     usable: np.ndarray
     regular: bool
+    connectivity: np.ndarray  # the colour refinement alone (reused when only geometry changed)
 
 
-def vertex_labels(vertices: np.ndarray, adj: Adjacency) -> Labels:
-    """Keyless label of every vertex and the mask of vertices that may carry a bit."""
-    colours = wl_colours(adj)
+def vertex_labels(vertices: np.ndarray, adj: Adjacency, previous: Labels | None = None) -> Labels:
+    """Keyless label of every vertex and the mask of vertices that may carry a bit.
+
+    ``previous``: labels of the same connectivity (only the geometric fallback is recomputed).
+    """
+    if previous is not None:
+        if not previous.regular:
+            return previous
+        colours = combine(previous.connectivity, _fallback_cells(vertices, adj))
+        return Labels(colours, previous.usable, True, previous.connectivity)
     usable = (~adj.boundary) & (~adj.nonmanifold) & (adj.degree >= MIN_DEGREE) & (adj.degree <= MAX_DEGREE)
-    regular = is_regular(colours, usable)
+    # more rings only where fewer cannot tell vertices apart (subdivided meshes); the choice
+    # depends on connectivity only, so embedder and detector make the same one
+    colours: np.ndarray | None = None
+    done = 0
+    for rounds in ROUND_STEPS:
+        colours = wl_colours(adj, rounds, colours, done)
+        done = rounds
+        regular = is_regular(colours, usable)
+        if not regular:
+            break
+    assert colours is not None
     if regular:
-        n = len(vertices)
-        deg = np.maximum(adj.degree, 1)
-        mu = np.stack([np.bincount(adj.rows, vertices[adj.indices, c], minlength=n) for c in range(3)], 1)
-        mu = mu / deg[:, None]
-        half = adj.rows < adj.indices
-        edge = np.linalg.norm(vertices[adj.rows[half]] - vertices[adj.indices[half]], axis=1)
-        x = vertices - vertices.mean(axis=0)
-        r = float(np.sqrt((x * x).sum(axis=1).mean())) or 1.0
-        cell = float(np.median(edge)) / r if edge.size else 1.0
-        colours = combine(colours, frame_cells(mu, vertices, cell))
-    return Labels(colours, usable, regular)
+        return Labels(combine(colours, _fallback_cells(vertices, adj)), usable, True, colours)
+    return Labels(colours, usable, False, colours)
+
+
+def _fallback_cells(vertices: np.ndarray, adj: Adjacency) -> np.ndarray:
+    """Cell hash of every vertex's neighbour mean (neighbour-only, so a carrier's own label
+    does not move with it)."""
+    n = len(vertices)
+    deg = np.maximum(adj.degree, 1)
+    mu = np.stack([np.bincount(adj.rows, vertices[adj.indices, c], minlength=n) for c in range(3)], 1)
+    mu = mu / deg[:, None]
+    # cell size from the vertex count only: the median edge length moves with the carriers
+    # and a 0.1 % change of the cell shifts far cells by a whole cell
+    return frame_cells(mu, vertices, CELLS_PER_RADIUS / np.sqrt(max(n, 1)))
 
 
 def select_carriers(adj: Adjacency, priority: np.ndarray, usable: np.ndarray) -> np.ndarray:

@@ -44,7 +44,7 @@ class Tolerances:
     max_local_move: float = 0.8     # displacement cap, units of the local scale
     max_move: float = 5e-3          # displacement cap, fraction of the bounding-box diagonal...
     coarse_move: float = 0.25       # ...or this fraction of the median local scale on coarse meshes
-    verify_rounds: int = 4          # embed -> re-analyse -> fix rounds
+    verify_rounds: int = 3          # embed -> re-analyse -> fix rounds
 
 
 TOL = Tolerances()
@@ -79,12 +79,18 @@ def statistic(method: str, v: np.ndarray, mu: np.ndarray, axes: np.ndarray, lam:
     return (rho - tol.radius) * np.sqrt(lam[:, 0]) / scale
 
 
-def analyse(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, method: str,
-            adj: Adjacency | None = None, labels: Labels | None = None,
-            tol: Tolerances = TOL) -> Analysis:
-    """Select the carriers of a mesh and read their statistics (the detector's view)."""
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}")
+def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes,
+                    methods: list[str] | tuple[str, ...],
+                    adj: Adjacency | None = None, labels: Labels | None = None,
+                    tol: Tolerances = TOL) -> dict[str, Analysis]:
+    """Select the carriers of a mesh and read their statistics (the detector's view).
+
+    The carriers and their neighbourhoods do not depend on the method; only the statistic does,
+    so several methods share one selection.
+    """
+    for method in methods:
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}")
     v = np.asarray(vertices, np.float64)
     if adj is None:
         adj = adjacency(faces, len(v))
@@ -96,17 +102,25 @@ def analyse(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, method: s
     mu, sigma = neighbour_moments(v, adj, sel)
     lam, axes = np.linalg.eigh(sigma)
     lam = np.maximum(lam, 0.0)
-    s2 = lam.sum(axis=1)
-    scale = np.sqrt(s2)
+    scale = np.sqrt(lam.sum(axis=1))
     ok = (scale > 0) & (lam[:, 1] > tol.min_flatness * np.maximum(lam[:, 2], 1e-300))
     if ok.any():
         ok &= scale <= tol.max_scale * np.median(scale[ok])
     sel, mu, axes, lam, scale = sel[ok], mu[ok], axes[ok], lam[ok], scale[ok]
-    if method == "ellipsoids":
-        lam = lam + tol.alpha * (scale**2)[:, None]
-    z = statistic(method, v[sel], mu, axes, lam, scale, tol)
     slot_hash = mix64(labels.labels[sel] ^ salt_s)
-    return Analysis(sel, slot_hash, z, mu, axes, lam, scale, labels.regular)
+    out = {}
+    for method in methods:
+        lam_m = lam + tol.alpha * (scale**2)[:, None] if method == "ellipsoids" else lam
+        z = statistic(method, v[sel], mu, axes, lam_m, scale, tol)
+        out[method] = Analysis(sel, slot_hash, z, mu, axes, lam_m, scale, labels.regular)
+    return out
+
+
+def analyse(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, method: str,
+            adj: Adjacency | None = None, labels: Labels | None = None,
+            tol: Tolerances = TOL) -> Analysis:
+    """:func:`analyse_methods` for one method."""
+    return analyse_methods(vertices, faces, key, [method], adj, labels, tol)[method]
 
 
 def target_positions(method: str, a: Analysis, v: np.ndarray, bits: np.ndarray, margin: float,
@@ -148,7 +162,7 @@ class EmbedStats:
 
 def embed_arrays(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, codeword: np.ndarray,
                  method: str, strength: float, quantize=None, tol: Tolerances = TOL,
-                 slots=None) -> tuple[np.ndarray, EmbedStats]:
+                 ) -> tuple[np.ndarray, EmbedStats, Analysis]:
     """Move carriers so that the detector reads ``codeword`` (already whitened).
 
     Parameters
@@ -158,40 +172,39 @@ def embed_arrays(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, code
     strength : float
         Margin ``|z|`` after embedding.
     quantize : callable, optional
-        What storing the positions does to them (float32, printed decimals); the result is
+        What storing the positions does to them (float32, printed decimals); carriers are
         verified after it.
-    slots : callable, optional
-        ``slots(analysis, L) -> (k,) int`` slot of every carrier (default: see :func:`assign_slots`).
 
     Returns
     -------
     new_vertices : (n, 3) float64
     stats : EmbedStats
+    analysis : Analysis
+        The detector's view of the result (the verification).
+
+    Notes
+    -----
+    Carriers are independent (no two adjacent), so moving them changes no carrier's
+    neighbourhood: with connectivity labels the selection of the stego mesh is the same, and
+    only the moved carriers' statistics need re-reading after quantisation.  With the regular
+    fallback the labels depend on geometry, so each round re-analyses the whole mesh.
     """
-    slots = slots or assign_slots
     v0 = np.asarray(vertices, np.float64)
     adj = adjacency(faces, len(v0))
     diag = bbox_diagonal(v0)
     v = v0.copy()
-    global_cap = tol.max_move * diag
     L = len(codeword)
     skipped = np.zeros(len(v0), bool)
-    carriers = 0
-    rounds = 0
     labels = vertex_labels(v0, adj)
+    a = analyse(v0, faces, key, method, adj=adj, labels=labels, tol=tol)
+    carriers = len(a.carriers)
+    med = float(np.median(a.scale)) if len(a.scale) else 0.0
+    global_cap = max(tol.max_move * diag, tol.coarse_move * med)
+    rounds = 0
     for rounds in range(1, tol.verify_rounds + 1):
-        if rounds > 1 and not labels.regular:
-            pass  # connectivity labels cannot change; only the regular fallback needs recomputing
-        elif rounds > 1:
-            labels = vertex_labels(v, adj)
-        a = analyse(v, faces, key, method, adj=adj, labels=labels, tol=tol)
-        if rounds == 1:
-            carriers = len(a.carriers)
-            med = float(np.median(a.scale)) if len(a.scale) else 0.0
-            global_cap = max(tol.max_move * diag, tol.coarse_move * med)
-        bits = codeword[slots(a, L)]
-        margin = strength if rounds == 1 else 0.5 * strength
+        bits = codeword[assign_slots(a, L)]
         want = np.where(bits == 0, 1.0, -1.0)
+        margin = strength if rounds == 1 else 0.5 * strength
         bad = (want * a.z < margin) & ~skipped[a.carriers]
         if not bad.any():
             break
@@ -200,15 +213,20 @@ def embed_arrays(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, code
                        a.regular)
         new = target_positions(method, sub, v[idx], bits[bad], strength, tol)
         move = np.linalg.norm(new - v0[idx], axis=1)
-        cap = np.minimum(tol.max_local_move * sub.scale, global_cap)
-        okm = move <= cap
+        okm = move <= np.minimum(tol.max_local_move * sub.scale, global_cap)
         skipped[idx[~okm]] = True
         moved_v = new[okm]
         if quantize is not None:
             moved_v = quantize(moved_v)
         v[idx[okm]] = moved_v
+        if labels.regular:
+            labels = vertex_labels(v, adj, labels)
+            a = analyse(v, faces, key, method, adj=adj, labels=labels, tol=tol)
+        else:
+            sel = np.flatnonzero(bad)
+            a.z[sel] = statistic(method, v[idx], sub.mu, sub.axes, sub.lam, sub.scale, tol)
     moved = int(np.any(v != v0, axis=1).sum())
-    return v, EmbedStats(carriers, int(skipped.sum()), moved, rounds)
+    return v, EmbedStats(carriers, int(skipped.sum()), moved, rounds), a
 
 
 #: carriers per slot from which the embedder assigns slots by hash rather than by rank

@@ -1,0 +1,612 @@
+"""glTF 2.0 meshes, binary (``.glb``) and JSON (``.gltf`` with embedded ``data:`` buffers).
+
+What is read
+------------
+Every mesh primitive of mode TRIANGLES (4, the default), TRIANGLE_STRIP (5) or TRIANGLE_FAN (6),
+indexed (UNSIGNED_BYTE/SHORT/INT) or not, whose ``POSITION`` accessor is a plain FLOAT VEC3
+accessor backed by a bufferView.  Strips and fans are converted to triangles for the engine;
+POINTS and LINES primitives (modes 0-3) are skipped.  One :class:`MeshPart` per glTF *mesh*
+(name from ``mesh.name`` or ``"mesh{i}"``) combines its triangle primitives; positions are welded
+bit-exactly within the mesh (UV seams, split normals), and ``slot_to_vertex`` lists every
+``POSITION`` element of every triangle primitive of the mesh, primitive after primitive.
+
+Nodes are ignored: the engine works on each mesh's *local* coordinates, so a mesh placed by
+several nodes (instancing) is one part, and the watermark moves every instance the same way.
+
+What is refused
+---------------
+Buffers whose URI is not an embedded ``data:...;base64,`` URI (relative or absolute paths,
+``file:``, ``http(s):``...) are refused and never opened.  Image URIs are never looked at.
+Sparse or bufferView-less ``POSITION`` accessors (Draco, meshopt) are refused.  Every count,
+offset and stride is checked against its bufferView and buffer before anything is allocated, and
+JSON deeper than :data:`MAX_JSON_DEPTH` is refused before parsing.
+
+Writing
+-------
+Moved coordinates are patched in place as float32 in their buffer: the GLB ``BIN`` chunk, or the
+re-encoded base64 payload of a ``data:`` URI.  The JSON text is kept byte for byte except the
+``min``/``max`` arrays of ``POSITION`` accessors whose extents changed (and re-encoded ``data:``
+URIs), which are rewritten in place; for GLB the JSON chunk is re-padded with spaces to 4 bytes
+and the chunk and total lengths are updated.  A position element used by several meshes (the same
+bytes reached through two accessors) is written once, from the first part that uses it.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import json
+import re
+import struct
+from typing import Any
+
+import numpy as np
+
+from core.errors import DegenerateMeshError, MeshFormatError
+from core.formats._binary import finite_float64, float32_xyz, moved_slots, patch_xyz
+from core.formats.base import Limits, MeshDocument, MeshPart, weld
+
+GLB_MAGIC = b"glTF"
+CHUNK_JSON = 0x4E4F534A
+CHUNK_BIN = 0x004E4942
+#: Deepest JSON nesting accepted (real glTF files need about 8).
+MAX_JSON_DEPTH = 64
+
+FLOAT = 5126
+_INDEX_DTYPES: dict[int, np.dtype] = {5121: np.dtype("<u1"), 5123: np.dtype("<u2"), 5125: np.dtype("<u4")}
+_TRIANGLE_MODES = (4, 5, 6)
+_SKIPPED_MODES = (0, 1, 2, 3)
+_COMPRESSION_EXTENSIONS = ("KHR_draco_mesh_compression", "EXT_meshopt_compression")
+_KEY_SHIFT = 40  # (buffer << 40) | byte offset identifies a stored position element
+
+# a complete JSON string literal (unrolled loop: linear time, no backtracking)
+_STRING_RE = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"')
+# string literals, other scalars (numbers, true, false, null) and structural characters
+_TOKEN_RE = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"|[{}\[\]:,]|[^\s{}\[\]:,"]+')
+_ASSET_RE = re.compile(rb'"asset"\s*:')
+_WS = b" \t\r\n"
+
+
+def sniff(data: bytes, name: str) -> bool:
+    """``"glb"``: starts with the GLB magic; ``"gltf"``: a JSON object with an ``"asset"`` member."""
+    if name == "glb":
+        return data[:4] == GLB_MAGIC
+    head = data[:64].lstrip(_WS)
+    if head.startswith(b"\xef\xbb\xbf"):
+        head = head[3:].lstrip(_WS)
+    if not head.startswith(b"{"):
+        return False
+    # "asset" comes first in files from common exporters; look further only when it does not
+    return _ASSET_RE.search(data, 0, 1 << 16) is not None or _ASSET_RE.search(data) is not None
+
+
+def read(data: bytes, limits: Limits, name: str) -> MeshDocument:
+    """Parse a GLB (``name="glb"``) or ``.gltf`` JSON (``name="gltf"``) file.
+
+    Parameters
+    ----------
+    data : bytes
+        The whole file.
+    limits : Limits
+        Checked before allocations proportional to declared counts.
+    name : str
+        Format key, ``"glb"`` or ``"gltf"``.
+
+    Returns
+    -------
+    GltfDocument
+
+    Raises
+    ------
+    MeshFormatError
+        Malformed or unsupported content (external buffers, sparse or compressed positions...).
+    LimitExceededError
+        JSON, buffers, vertices, faces or meshes above ``limits``.
+    DegenerateMeshError
+        No triangle mesh in the file.
+    """
+    if data[:4] == GLB_MAGIC:
+        return _Reader(data, limits).read_glb()
+    return _Reader(data, limits).read_gltf()
+
+
+class GltfDocument(MeshDocument):
+    """A parsed glTF file; :meth:`write` patches float32 positions in their buffers."""
+
+    encoding = "binary"
+    media_type = "model/gltf-binary"
+    extension = "glb"
+    storage_dtype = np.dtype(np.float32)
+
+    def __init__(
+        self,
+        data: bytes,
+        parts: list[MeshPart],
+        *,
+        gltf: dict[str, Any],
+        text: str,
+        json_chunk: tuple[int, int] | None,
+        buffers: dict[int, tuple[bytes, int | None, str | None]],
+        slots: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+        positions: dict[int, tuple[int, int, int, int]],
+    ) -> None:
+        super().__init__(data, parts)
+        self.format = "gltf" if json_chunk is None else "glb"
+        if json_chunk is None:
+            self.encoding, self.media_type, self.extension = "ascii", "model/gltf+json", "gltf"
+        self._gltf = gltf
+        self._text = text
+        self._json_chunk = json_chunk
+        self._buffers = buffers
+        self._slots = slots
+        self._positions = positions
+
+    def _patch(self, vertices: list[np.ndarray], moved: list[np.ndarray], decimals: int | None) -> bytes:
+        new_buffers: dict[int, bytearray] = {}
+        for part, v, m, (buf_idx, offsets, writable) in zip(
+            self.parts, vertices, moved, self._slots, strict=True
+        ):
+            if m.size == 0:
+                continue
+            sel = moved_slots(part, m) & writable
+            if not sel.any():
+                continue
+            values = float32_xyz(np.asarray(v, dtype=np.float64)[part.slot_to_vertex[sel]])
+            sel_buf, sel_off = buf_idx[sel], offsets[sel]
+            for b in np.unique(sel_buf).tolist():
+                if b not in new_buffers:
+                    new_buffers[b] = bytearray(self._buffers[b][0])
+                here = sel_buf == b
+                patch_xyz(new_buffers[b], sel_off[here], values[here])
+        if not new_buffers:
+            return self.data
+
+        edits: list[tuple[str, int, str, str]] = []  # (section, index, member, new JSON text)
+        for acc_idx, (b, start, stride, count) in self._positions.items():
+            if b not in new_buffers:
+                continue
+            old = _strided_xyz(self._buffers[b][0], start, stride, count)
+            new = _strided_xyz(new_buffers[b], start, stride, count)
+            if np.array_equal(old.view("<u4"), new.view("<u4")):
+                continue
+            acc = self._gltf["accessors"][acc_idx]
+            for key, ext in (("min", new.min(axis=0)), ("max", new.max(axis=0))):
+                if key in acc and not _same_float32(acc[key], ext):
+                    edits.append(("accessors", acc_idx, key, _number_array(ext)))
+        for b, buf in new_buffers.items():
+            _, _, uri_head = self._buffers[b]
+            if uri_head is not None:
+                payload = base64.b64encode(bytes(buf)).decode("ascii")
+                edits.append(("buffers", b, "uri", json.dumps(uri_head + "," + payload)))
+
+        text = self._text
+        if edits:
+            spans = _member_spans(text)
+            located = []
+            for section, index, key, new_text in edits:
+                span = spans.get((section, index, key))
+                if span is None:  # cannot happen: spans follow json.loads' last-member-wins rule
+                    raise RuntimeError(f"{section}[{index}].{key} not found in the JSON text")
+                located.append((span, new_text))
+            for (s, e), new_text in sorted(located, reverse=True):
+                text = text[:s] + new_text + text[e:]
+
+        if self._json_chunk is None:  # .gltf: everything lives in the JSON text
+            return text.encode("utf-8")
+        out = bytearray(self.data)
+        bin_buf = self._buffers.get(0)
+        if 0 in new_buffers and bin_buf is not None and bin_buf[1] is not None:
+            start = bin_buf[1]
+            out[start : start + len(new_buffers[0])] = new_buffers[0]
+        if text is self._text:
+            return bytes(out)
+        js, jl = self._json_chunk
+        body = text.encode("utf-8")
+        body += b" " * (-len(body) % 4)
+        total = struct.unpack_from("<I", out, 8)[0] + len(body) - jl
+        head = bytes(out[:8]) + struct.pack("<III", total, len(body), CHUNK_JSON)
+        return head + body + bytes(out[js + jl :])
+
+
+def _strided_xyz(buf: bytes | bytearray, start: int, stride: int, count: int) -> np.ndarray:
+    """Copy of ``count`` float32 triples starting at ``start``, ``stride`` bytes apart."""
+    arr = np.ndarray((count, 3), dtype="<f4", buffer=buf, offset=start, strides=(stride, 4))
+    return np.array(arr)
+
+
+def _same_float32(old: Any, new: np.ndarray) -> bool:
+    """Whether a JSON ``min``/``max`` value already equals ``new`` once stored as float32."""
+    if not isinstance(old, list) or len(old) != 3:
+        return False
+    if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in old):
+        return False
+    try:
+        stored = np.asarray(old, dtype=np.float64)
+    except OverflowError:
+        return False
+    with np.errstate(over="ignore"):
+        return bool(np.array_equal(stored.astype(np.float32), new))
+
+
+def _number_array(values: np.ndarray) -> str:
+    """JSON array of float32 values, each printed as its exact double (round-trips either way)."""
+    return "[" + ",".join(repr(float(x)) for x in np.asarray(values, dtype=np.float32)) + "]"
+
+
+def _member_spans(text: str) -> dict[tuple[str, int, str], tuple[int, int]]:
+    """Character spans of ``accessors[i].min/max`` and ``buffers[i].uri`` values in valid JSON.
+
+    Follows json.loads: for duplicated members, the last one wins.
+    """
+    wanted = {("accessors", "min"), ("accessors", "max"), ("buffers", "uri")}
+    spans: dict[tuple[str, int, str], tuple[int, int]] = {}
+    stack: list[list[Any]] = []  # ["o", key, expecting_key] or ["a", index]
+    opened: list[tuple[tuple[str, int, str], int] | None] = []
+    for m in _TOKEN_RE.finditer(text):
+        tok = m.group()
+        top = stack[-1] if stack else None
+        if tok == ":":
+            if top is not None:
+                top[2] = False
+            continue
+        if tok == ",":
+            if top is not None:
+                if top[0] == "o":
+                    top[2] = True
+                else:
+                    top[1] += 1
+            continue
+        if tok in ("}", "]"):
+            rec = opened.pop()
+            stack.pop()
+            if rec is not None:
+                spans[rec[0]] = (rec[1], m.end())
+            continue
+        if top is not None and top[0] == "o" and top[2]:  # a member name
+            top[1] = json.loads(tok)
+            if len(stack) == 1 and top[1] in ("accessors", "buffers"):
+                spans = {k: v for k, v in spans.items() if k[0] != top[1]}
+            continue
+        target = None
+        if len(stack) == 3 and stack[0][0] == "o" and stack[1][0] == "a" and stack[2][0] == "o":
+            if (stack[0][1], stack[2][1]) in wanted:
+                target = (stack[0][1], stack[1][1], stack[2][1])
+        if tok not in ("{", "["):  # a scalar value
+            if target is not None:
+                spans[target] = m.span()
+        else:
+            stack.append(["o", None, True] if tok == "{" else ["a", 0])
+            opened.append((target, m.start()) if target is not None else None)
+    return spans
+
+
+def _reject_constant(name: str) -> Any:
+    raise MeshFormatError(f"invalid JSON number {name}")
+
+
+def _parse_json(text: str, where: str) -> dict[str, Any]:
+    """Parse glTF JSON after checking its nesting depth (no recursion on hostile input)."""
+    skeleton = _STRING_RE.sub("", text).encode("utf-8", "replace")
+    codes = np.frombuffer(skeleton, dtype=np.uint8)
+    step = np.isin(codes, (ord("{"), ord("["))).astype(np.int32) - np.isin(codes, (ord("}"), ord("]")))
+    if codes.size and int(np.cumsum(step).max()) > MAX_JSON_DEPTH:
+        raise MeshFormatError(f"JSON nested deeper than {MAX_JSON_DEPTH} levels", where)
+    try:
+        gltf = json.loads(text, parse_constant=_reject_constant)
+    except (ValueError, RecursionError) as exc:
+        raise MeshFormatError(f"invalid JSON: {str(exc)[:200]}", where) from None
+    if not isinstance(gltf, dict):
+        raise MeshFormatError("glTF JSON must be an object", where)
+    asset = gltf.get("asset")
+    version = asset.get("version") if isinstance(asset, dict) else None
+    if not isinstance(version, str) or not version.startswith("2."):
+        raise MeshFormatError("not a glTF 2.0 asset (asset.version must be '2.x')", "asset")
+    return gltf
+
+
+def _as_list(obj: dict[str, Any], key: str, where: str) -> list[Any]:
+    value = obj.get(key, [])
+    if not isinstance(value, list):
+        raise MeshFormatError(f"'{key}' must be an array", where)
+    return value
+
+
+def _as_int(obj: dict[str, Any], key: str, where: str, default: int | None = None, minimum: int = 0) -> int:
+    value = obj.get(key, default)
+    if value is None:
+        raise MeshFormatError(f"'{key}' is required", where)
+    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+        raise MeshFormatError(f"'{key}' must be an integer >= {minimum}", where)
+    return value
+
+
+def _item(items: list[Any], index: Any, what: str, where: str) -> dict[str, Any]:
+    if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < len(items):
+        raise MeshFormatError(f"{what} index {index!r} out of range", where)
+    item = items[index]
+    if not isinstance(item, dict):
+        raise MeshFormatError("must be an object", f"{what}[{index}]")
+    return item
+
+
+def _triangles(seq: np.ndarray, mode: int) -> np.ndarray:
+    """Triangles of a TRIANGLES (4), TRIANGLE_STRIP (5) or TRIANGLE_FAN (6) index sequence."""
+    n = len(seq)
+    if mode == 4:
+        return seq[: n - n % 3].reshape(-1, 3)
+    if n < 3:
+        return np.zeros((0, 3), np.int64)
+    k = np.arange(n - 2)
+    if mode == 5:
+        odd = (k % 2).astype(bool)
+        a, b = seq[k], seq[k + 1]
+        return np.stack([np.where(odd, b, a), np.where(odd, a, b), seq[k + 2]], axis=1)
+    return np.stack([np.full(n - 2, seq[0]), seq[k + 1], seq[k + 2]], axis=1)
+
+
+class _Reader:
+    """One parse of one file (holds the JSON, buffers and running limit counters)."""
+
+    def __init__(self, data: bytes, limits: Limits) -> None:
+        self.data = data
+        self.limits = limits
+        self.glb_bin: tuple[int, int] | None = None  # (start, length) of the GLB BIN chunk data
+        self.gltf: dict[str, Any] = {}
+        self.buffer_data: dict[int, tuple[bytes, int | None, str | None]] = {}
+
+    # ---------------------------------------------------------------- containers
+    def read_glb(self) -> GltfDocument:
+        data = self.data
+        if len(data) < 20:
+            raise MeshFormatError("truncated GLB header", "byte 0")
+        _, version, length = struct.unpack_from("<4sII", data, 0)
+        if version != 2:
+            raise MeshFormatError(f"unsupported GLB version {version} (only 2)", "byte 4")
+        if length > len(data) or length < 20:
+            raise MeshFormatError(f"GLB length {length} does not fit the {len(data)}-byte file", "byte 8")
+        chunks: list[tuple[int, int, int]] = []
+        off = 12
+        while off < length:
+            if length - off < 8:
+                raise MeshFormatError("truncated GLB chunk header", f"byte {off}")
+            clen, ctype = struct.unpack_from("<II", data, off)
+            if clen > length - off - 8:
+                raise MeshFormatError(f"GLB chunk length {clen} runs past the end of the file", f"byte {off}")
+            chunks.append((ctype, off + 8, clen))
+            off += 8 + clen
+        if chunks[0][0] != CHUNK_JSON:
+            raise MeshFormatError("the first GLB chunk must be JSON", "byte 16")
+        _, js, jl = chunks[0]
+        self.limits.check("json_bytes", jl)
+        bins = [(s, n) for t, s, n in chunks[1:] if t == CHUNK_BIN]
+        self.glb_bin = bins[0] if bins else None
+        try:
+            text = data[js : js + jl].rstrip(b"\x00" + _WS).decode("utf-8")
+        except UnicodeDecodeError:
+            raise MeshFormatError("GLB JSON chunk is not UTF-8", f"byte {js}") from None
+        self.gltf = _parse_json(text, "GLB JSON chunk")
+        return self._document(text, (js, jl))
+
+    def read_gltf(self) -> GltfDocument:
+        try:
+            text = self.data.decode("utf-8")
+        except UnicodeDecodeError:
+            raise MeshFormatError("glTF JSON is not UTF-8") from None
+        self.gltf = _parse_json(text, "glTF JSON")
+        embedded = 0
+        for key in ("buffers", "images"):
+            items = self.gltf.get(key)
+            for item in items if isinstance(items, list) else []:
+                uri = item.get("uri") if isinstance(item, dict) else None
+                if isinstance(uri, str) and uri[:5].lower() == "data:":
+                    embedded += len(uri)
+        self.limits.check("json_bytes", len(text) - embedded)
+        return self._document(text, None)
+
+    # ---------------------------------------------------------------- buffers
+    def _check_buffers(self) -> list[Any]:
+        buffers = _as_list(self.gltf, "buffers", "buffers")
+        for i, buf in enumerate(buffers):
+            where = f"buffers[{i}]"
+            if not isinstance(buf, dict):
+                raise MeshFormatError("must be an object", where)
+            _as_int(buf, "byteLength", where, minimum=1)
+            uri = buf.get("uri")
+            if uri is None:
+                if self.glb_bin is None or i != 0:
+                    raise MeshFormatError("buffer has no uri (only GLB buffer 0, the BIN chunk, may)", where)
+            elif not isinstance(uri, str) or uri[:5].lower() != "data:":
+                raise MeshFormatError(
+                    "external buffer refused: only embedded data: URIs (or a GLB BIN chunk) are read", where
+                )
+        return buffers
+
+    def _buffer(self, index: int) -> bytes:
+        """Bytes of buffer ``index`` (validated by :meth:`_check_buffers`), decoded once."""
+        if index in self.buffer_data:
+            return self.buffer_data[index][0]
+        buf = self.gltf["buffers"][index]
+        where = f"buffers[{index}]"
+        uri = buf.get("uri")
+        if uri is None:
+            assert self.glb_bin is not None
+            start, n = self.glb_bin
+            raw, file_offset, head = self.data[start : start + n], start, None
+        else:
+            head, comma, payload = uri.partition(",")
+            if not comma or not head.lower().endswith(";base64"):
+                raise MeshFormatError("data: URI must be base64-encoded", where)
+            self.limits.check("bytes", len(payload) // 4 * 3)
+            try:
+                raw = base64.b64decode(payload, validate=True)
+            except (binascii.Error, ValueError):
+                raise MeshFormatError("invalid base64 in data: URI", where) from None
+            file_offset = None
+        if buf["byteLength"] > len(raw):
+            raise MeshFormatError(f"byteLength {buf['byteLength']} > the {len(raw)} bytes stored", where)
+        self.buffer_data[index] = (raw, file_offset, head)
+        return raw
+
+    def _layout(self, acc_index: int, elem_size: int, role: str) -> tuple[int, int, int, int]:
+        """Validated (buffer, byte offset, stride, count) of a plain accessor, nothing allocated."""
+        where = f"accessors[{acc_index}]"
+        acc = _item(_as_list(self.gltf, "accessors", "accessors"), acc_index, "accessors", where)
+        if "sparse" in acc:
+            raise MeshFormatError(f"sparse {role} accessor is not supported", where)
+        if "bufferView" not in acc:
+            raise MeshFormatError(f"{role} accessor has no bufferView (compressed or empty data)", where)
+        count = _as_int(acc, "count", where, minimum=1)
+        acc_offset = _as_int(acc, "byteOffset", where, default=0)
+        views = _as_list(self.gltf, "bufferViews", "bufferViews")
+        view_index = acc["bufferView"]
+        view = _item(views, view_index, "bufferViews", where)
+        vwhere = f"bufferViews[{view_index}]"
+        buf = _item(_as_list(self.gltf, "buffers", "buffers"), view.get("buffer"), "buffers", vwhere)
+        buf_index: int = view["buffer"]  # a valid index now
+        view_offset = _as_int(view, "byteOffset", vwhere, default=0)
+        view_length = _as_int(view, "byteLength", vwhere, minimum=1)
+        stride = elem_size
+        if "byteStride" in view:
+            stride = _as_int(view, "byteStride", vwhere, minimum=4)
+            if stride > 252 or stride < elem_size:
+                raise MeshFormatError(f"byteStride {stride} invalid for {elem_size}-byte elements", vwhere)
+        if acc_offset + (count - 1) * stride + elem_size > view_length:
+            raise MeshFormatError(
+                f"{count} elements of stride {stride} from offset {acc_offset} overrun the "
+                f"{view_length}-byte bufferView",
+                where,
+            )
+        if view_offset + view_length > buf["byteLength"]:
+            raise MeshFormatError("bufferView runs past the end of its buffer", vwhere)
+        if view_offset + view_length > len(self._buffer(buf_index)):
+            raise MeshFormatError("bufferView runs past the stored buffer data", vwhere)
+        return buf_index, view_offset + acc_offset, stride, count
+
+    # ---------------------------------------------------------------- meshes
+    def _document(self, text: str, json_chunk: tuple[int, int] | None) -> GltfDocument:
+        gltf, limits = self.gltf, self.limits
+        required = gltf.get("extensionsRequired", [])
+        for ext in _COMPRESSION_EXTENSIONS:
+            if isinstance(required, list) and ext in required:
+                raise MeshFormatError(f"compressed meshes ({ext}) are not supported", "extensionsRequired")
+        self._check_buffers()
+        accessors = _as_list(gltf, "accessors", "accessors")
+        meshes = _as_list(gltf, "meshes", "meshes")
+        limits.check("meshes", len(meshes))
+        total_slots = total_faces = 0
+        parts: list[MeshPart] = []
+        part_slots: list[tuple[np.ndarray, np.ndarray]] = []
+        positions: dict[int, tuple[int, int, int, int]] = {}
+        index_ranges: list[tuple[int, int, int]] = []
+        for mi, mesh in enumerate(meshes):
+            mwhere = f"meshes[{mi}]"
+            if not isinstance(mesh, dict):
+                raise MeshFormatError("must be an object", mwhere)
+            pos_list, tri_list, buf_list, off_list = [], [], [], []
+            n_slots = 0
+            for pi, prim in enumerate(_as_list(mesh, "primitives", mwhere)):
+                pwhere = f"{mwhere}.primitives[{pi}]"
+                if not isinstance(prim, dict):
+                    raise MeshFormatError("must be an object", pwhere)
+                mode = _as_int(prim, "mode", pwhere, default=4)
+                attributes = prim.get("attributes", {})
+                if not isinstance(attributes, dict):
+                    raise MeshFormatError("'attributes' must be an object", pwhere)
+                if mode in _SKIPPED_MODES or "POSITION" not in attributes:
+                    continue
+                if mode not in _TRIANGLE_MODES:
+                    raise MeshFormatError(f"unknown primitive mode {mode}", pwhere)
+                pos_index = attributes["POSITION"]
+                acc = _item(accessors, pos_index, "accessors", pwhere)
+                awhere = f"accessors[{pos_index}]"
+                ctype = acc.get("componentType")
+                float_vec3 = type(ctype) is int and ctype == FLOAT and acc.get("type") == "VEC3"
+                if not float_vec3 or acc.get("normalized"):
+                    raise MeshFormatError("POSITION accessor must be non-normalized FLOAT VEC3", awhere)
+                b, start, stride, count = self._layout(pos_index, 12, "POSITION")
+                total_slots += count
+                limits.check("vertices", total_slots)
+                if "indices" in prim:
+                    idx_index = prim["indices"]
+                    iacc = _item(accessors, idx_index, "accessors", pwhere)
+                    iwhere = f"accessors[{idx_index}]"
+                    ctype = iacc.get("componentType")
+                    dtype = _INDEX_DTYPES.get(ctype) if type(ctype) is int else None
+                    if dtype is None or iacc.get("type") != "SCALAR":
+                        raise MeshFormatError("indices must be UNSIGNED_BYTE/SHORT/INT SCALAR", iwhere)
+                    ib, istart, istride, icount = self._layout(idx_index, dtype.itemsize, "indices")
+                    n_faces = icount // 3 if mode == 4 else max(icount - 2, 0)
+                    total_faces += n_faces
+                    limits.check("faces", total_faces)
+                    seq = np.ndarray(
+                        (icount,), dtype=dtype, buffer=self._buffer(ib), offset=istart, strides=(istride,)
+                    ).astype(np.int64)
+                    if seq.size and int(seq.max()) >= count:
+                        raise MeshFormatError(f"index {int(seq.max())} >= POSITION count {count}", iwhere)
+                    index_ranges.append((ib, istart, istart + (icount - 1) * istride + dtype.itemsize))
+                else:
+                    total_faces += count // 3 if mode == 4 else max(count - 2, 0)
+                    limits.check("faces", total_faces)
+                    seq = np.arange(count, dtype=np.int64)
+                raw = self._buffer(b)
+                pos_list.append(finite_float64(_strided_xyz(raw, start, stride, count), awhere))
+                tri_list.append(_triangles(seq, mode) + n_slots)
+                buf_list.append(np.full(count, b, dtype=np.int64))
+                off_list.append(start + stride * np.arange(count, dtype=np.int64))
+                positions[pos_index] = (b, start, stride, count)
+                n_slots += count
+            if not pos_list:
+                continue
+            name = mesh.get("name")
+            vertices, faces, slot_to_vertex = weld(np.concatenate(pos_list), np.concatenate(tri_list))
+            parts.append(
+                MeshPart(
+                    name=name if isinstance(name, str) and name else f"mesh{mi}",
+                    vertices=vertices,
+                    faces=faces,
+                    slot_to_vertex=slot_to_vertex,
+                )
+            )
+            part_slots.append((np.concatenate(buf_list), np.concatenate(off_list)))
+        if not parts:
+            raise DegenerateMeshError("no triangle mesh in the glTF file")
+        slots = _ownership(part_slots, index_ranges)
+        return GltfDocument(
+            self.data,
+            parts,
+            gltf=gltf,
+            text=text,
+            json_chunk=json_chunk,
+            buffers=self.buffer_data,
+            slots=slots,
+            positions=positions,
+        )
+
+
+def _ownership(
+    part_slots: list[tuple[np.ndarray, np.ndarray]], index_ranges: list[tuple[int, int, int]]
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Add to each part's slots a mask of those it writes: the first use of each stored element.
+
+    Refuses position elements that partly overlap each other or index data, so that patching
+    positions can never change another position or a face.
+    """
+    buf = np.concatenate([b for b, _ in part_slots])
+    off = np.concatenate([o for _, o in part_slots])
+    keys = (buf << _KEY_SHIFT) | off
+    unique, first = np.unique(keys, return_index=True)
+    if np.any(np.diff(unique) < 12):
+        raise MeshFormatError("POSITION accessors overlap each other partially")
+    for b, start, end in index_ranges:
+        lo = np.searchsorted(unique, (b << _KEY_SHIFT) + start - 11, side="left")
+        hi = np.searchsorted(unique, (b << _KEY_SHIFT) + end, side="left")
+        if hi > lo:
+            raise MeshFormatError("POSITION data overlaps index data")
+    writable = np.zeros(keys.size, dtype=bool)
+    writable[first] = True
+    out = []
+    at = 0
+    for part_buf, part_off in part_slots:
+        out.append((part_buf, part_off, writable[at : at + part_buf.size]))
+        at += part_buf.size
+    return out

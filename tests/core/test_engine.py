@@ -1,0 +1,158 @@
+"""Engine invariants: exact embed -> detect, similarity and reordering invariance, float32 storage,
+regular meshes, capacity errors, no false detections."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from scipy.spatial import ConvexHull
+
+from core.api import detect_mesh, embed_mesh
+from core.coding import key_code
+from core.errors import CapacityError, DegenerateMeshError, PayloadError
+
+METHODS = ["ellipsoids", "planes"]
+
+
+def irregular_sphere(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Convex hull of random points on a bumpy sphere: an irregular closed triangle mesh."""
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(n, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    hull = ConvexHull(p)
+    f = hull.simplices.copy()
+    # orient outwards
+    c = p[f].mean(axis=1)
+    normal = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])
+    flip = (normal * c).sum(axis=1) < 0
+    f[flip] = f[flip][:, ::-1]
+    r = 1.0 + 0.05 * np.sin(3 * p[:, 0]) * np.cos(2 * p[:, 1])
+    return p * r[:, None], f
+
+
+def similarity(v: np.ndarray, f: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Random rotation, uniform scale in [0.05, 20], translation, vertex and face permutation."""
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    s = float(np.exp(rng.uniform(np.log(0.05), np.log(20))))
+    t = rng.normal(size=3) * 10
+    perm = rng.permutation(len(v))
+    inv = np.argsort(perm)
+    v2 = (s * v @ q.T + t)[perm]
+    f2 = inv[f][rng.permutation(len(f))]
+    return v2, f2
+
+
+payload_st = st.text(alphabet="01", min_size=1, max_size=64)
+key_st = st.text(min_size=1, max_size=40)
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), payload=payload_st, key=key_st, method=st.sampled_from(METHODS))
+def test_embed_detect_exact_and_invariant(seed: int, payload: str, key: str, method: str) -> None:
+    v, f = irregular_sphere(3000, seed)
+    marked, report = embed_mesh(v, f, key, payload=payload, method=method)
+    assert report.carriers >= report.codeword_bits
+    assert np.count_nonzero(np.any(marked != v, axis=1)) == report.vertices_moved
+    res = detect_mesh([(marked, f)], key)
+    assert res.detected and res.crc_ok and res.payload == payload
+    assert len(res.bit_confidence) == len(payload)
+    rng = np.random.default_rng(seed)
+    v2, f2 = similarity(marked, f, rng)
+    res2 = detect_mesh([(v2.astype(np.float32).astype(np.float64), f2)], key)
+    assert res2.detected and res2.payload == payload
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_key_derived_code_is_the_default(method: str) -> None:
+    v, f = irregular_sphere(2000, 1)
+    marked, report = embed_mesh(v, f, "paper mode", method=method)
+    assert report.key_derived and report.payload_bits == 32 and report.codeword_bits == 56
+    res = detect_mesh([(marked, f)], "paper mode", method=method)
+    assert res.detected and res.key_derived
+    assert res.payload == "".join(map(str, key_code("paper mode")))
+    assert res.bit_errors == 0
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("shape", ["icosphere", "cube"])
+def test_regular_meshes_carry_32_bits(shape: str, method: str) -> None:
+    if shape == "icosphere":
+        m = trimesh.creation.icosphere(subdivisions=5)
+    else:
+        m = trimesh.creation.box()
+        for _ in range(5):
+            m = m.subdivide()
+    payload = "10110011100011110000101011001010"
+    marked, report = embed_mesh(m.vertices, m.faces, "regular", payload=payload, method=method)
+    res = detect_mesh([(marked, m.faces)], "regular")
+    assert res.detected and res.payload == payload and res.parts[0]["regular_fallback"]
+    # translation, uniform scale and re-ordering keep the fallback frame
+    rng = np.random.default_rng(3)
+    perm = rng.permutation(len(marked))
+    inv = np.argsort(perm)
+    v2 = (marked * 3.5 + [1.0, -2.0, 0.5])[perm]
+    res2 = detect_mesh([(v2, inv[m.faces])], "regular")
+    assert res2.detected and res2.payload == payload
+
+
+def test_wrong_key_and_unmarked_are_not_detected() -> None:
+    v, f = irregular_sphere(3000, 7)
+    marked, _ = embed_mesh(v, f, "right key", payload="1" * 16)
+    for i in range(40):
+        assert not detect_mesh([(marked, f)], f"wrong key {i}").detected
+        assert not detect_mesh([(v, f)], f"any key {i}").detected
+
+
+def test_too_little_capacity_is_a_clear_error() -> None:
+    v, f = irregular_sphere(200, 2)
+    with pytest.raises(CapacityError) as err:
+        embed_mesh(v, f, "k", payload="1" * 256)
+    assert err.value.needed > err.value.carriers
+
+
+@pytest.mark.parametrize(
+    "vertices,faces",
+    [
+        (np.eye(3), np.array([[0, 1, 2]])),                       # a single triangle
+        (np.random.default_rng(0).normal(size=(50, 3)), np.zeros((0, 3), int)),  # a point cloud
+        (np.zeros((3, 3)), np.array([[0, 1, 2]])),                # all faces degenerate
+    ],
+)
+def test_meshes_that_cannot_carry_a_mark(vertices: np.ndarray, faces: np.ndarray) -> None:
+    with pytest.raises((CapacityError, DegenerateMeshError)):
+        embed_mesh(vertices, faces, "k")
+
+
+def test_bad_payload_and_key() -> None:
+    v, f = irregular_sphere(500, 3)
+    for bad in ["", "0102", "1" * 257]:
+        with pytest.raises(PayloadError):
+            embed_mesh(v, f, "k", payload=bad)
+    with pytest.raises(PayloadError):
+        embed_mesh(v, f, "")
+    with pytest.raises(PayloadError):
+        embed_mesh(v, f, "k", method="spheres")
+    with pytest.raises(PayloadError):
+        embed_mesh(v, f, "k", strength=-1)
+
+
+def test_confidence_is_calibrated_under_noise() -> None:
+    """Of the bits reported with confidence >= 0.9, at least ~90 % must be right."""
+    v, f = irregular_sphere(6000, 11)
+    payload = "".join(np.random.default_rng(1).choice(["0", "1"], 64))
+    marked, _ = embed_mesh(v, f, "cal", payload=payload)
+    rng = np.random.default_rng(2)
+    edge = np.linalg.norm(v[f[:, 0]] - v[f[:, 1]], axis=1).mean()
+    conf, right = [], []
+    for level in np.linspace(0.05, 0.6, 12):
+        noisy = marked + rng.normal(scale=level * edge, size=marked.shape)
+        res = detect_mesh([(noisy, f)], "cal", payload=payload)
+        conf += res.bit_confidence
+        right += [a == b for a, b in zip(res.payload or "", payload, strict=False)]
+    conf_a, right_a = np.array(conf), np.array(right)
+    hi = conf_a >= 0.9
+    assert hi.sum() > 50
+    assert right_a[hi].mean() >= 0.85
