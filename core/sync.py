@@ -125,8 +125,8 @@ def vertex_labels(vertices: np.ndarray, adj: Adjacency, previous: Labels | None 
     if previous is not None:
         if not previous.regular:
             return previous
-        colours = combine(previous.connectivity, _fallback_cells(vertices, adj))
-        return Labels(colours, previous.usable, True, previous.connectivity)
+        labels = combine(previous.connectivity, _fallback_cells(vertices, adj))
+        return Labels(labels, previous.usable, True, previous.connectivity)
     usable = (~adj.boundary) & (~adj.nonmanifold) & (adj.degree >= MIN_DEGREE) & (adj.degree <= MAX_DEGREE)
     # more rings only where fewer cannot tell vertices apart (subdivided meshes); the choice
     # depends on connectivity only, so embedder and detector make the same one
