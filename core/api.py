@@ -33,6 +33,7 @@ class EmbedReport:
     max_displacement: float
     hausdorff: float           # symmetric Hausdorff distance between input and output vertices/surface
     decimals: int | None       # text formats: decimals printed for moved coordinates
+    cap_factor: float          # displacement cap used, as a multiple of the default (coarse meshes)
     parts: list[dict[str, Any]] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:

@@ -26,7 +26,7 @@ from core.coding import (
     soft_decode,
     whitening,
 )
-from core.watermark import HASHED_FROM, Analysis, assign_slots
+from core.watermark import HASHED_FROM, Analysis, assign_slots_all
 
 #: the key-derived code is accepted with at most this many bit errors out of 32 (P = 7.7e-9)
 KEY_CODE_MAX_ERRORS = 1
@@ -58,10 +58,9 @@ def _votes(analyses: list[Analysis], key: str | bytes, L: int, adaptive: bool = 
     """
     mask = whitening(key, L)
     slots, votes = [], []
-    for a in analyses:
+    for a, s in zip(analyses, assign_slots_all(analyses, L, ranked), strict=True):
         if len(a.carriers) == 0:
             continue
-        s = assign_slots(a, L, ranked)
         if adaptive:
             zc = a.z - adaptive_threshold(a.z)
             w = float(np.median(np.abs(zc))) or 1.0
@@ -93,7 +92,7 @@ VARIANTS = ((False, None), (True, None), (False, True), (True, True), (False, Fa
 
 def _same_as_auto(analyses: list[Analysis], L: int, ranked: bool | None) -> bool:
     """A forced slot assignment that equals the automatic one for every part (already tried)."""
-    return ranked is not None and all((len(a.carriers) < HASHED_FROM * L) == ranked for a in analyses)
+    return ranked is not None and (sum(len(a.carriers) for a in analyses) < HASHED_FROM * L) == ranked
 
 
 def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -27,9 +29,11 @@ from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, MeshDocument, read_mesh
 from core.mesh import adjacency, bbox_diagonal
 from core.sync import vertex_labels
-from core.watermark import TOL, Analysis, analyse_methods, embed_arrays
+from core.watermark import TOL, Analysis, analyse_methods, embed_parts
 
 MAX_KEY_BYTES = 4096
+#: displacement caps tried in turn (multiples of the defaults in core.watermark.Tolerances)
+CAP_FACTORS = (1.0, 2.0, 4.0)
 
 
 def _check_key(key: str | bytes) -> None:
@@ -149,22 +153,22 @@ def _embed_doc(doc: MeshDocument, key: str | bytes, payload: str | None, method:
     codeword = encode(key, bits)
     L = len(codeword)
     decimals = doc.decimals
-    tries = [decimals] if decimals is None else [decimals, decimals + 2, decimals + 4, 17]
-    for attempt, dec in enumerate(tries):
+    # coarse meshes may need more than the default displacement cap: relax it (reported as
+    # cap_factor) before refusing; text formats may need more printed decimals
+    tries = [(f, d) for f in CAP_FACTORS
+             for d in ([decimals] if decimals is None else [decimals, decimals + 2, decimals + 4, 17])]
+    for attempt, (factor, dec) in enumerate(tries):
         new = [p.vertices.copy() for p in doc.parts]
-        stats = []
-        final: list[Analysis] = []
-        carriers = skipped = 0
+        tol = replace(TOL, coarse_move=TOL.coarse_move * factor, max_local_move=TOL.max_local_move * factor,
+                      max_move=TOL.max_move * factor)
+        vs, stats, final = embed_parts([(doc.parts[i].vertices, doc.parts[i].faces) for i in parts], key,
+                                       codeword, method, s, quantize=lambda x, d=dec: doc.quantize(x, d),
+                                       tol=tol)
         for k, i in enumerate(parts):
-            p = doc.parts[i]
-            v, st, a = embed_arrays(p.vertices, p.faces, key, codeword, method, s,
-                                    quantize=lambda x, d=dec: doc.quantize(x, d))
-            new[i] = v
-            final.append(a)
-            stats.append(st)
-            carriers += st.carriers
-            skipped += st.skipped
-            report(0.1 + 0.6 * (k + 1) / len(parts) / len(tries) * (attempt + 1))
+            new[i] = vs[k]
+        carriers = sum(st.carriers for st in stats)
+        skipped = sum(st.skipped for st in stats)
+        report(0.1 + 0.7 * (attempt + 1) / len(tries))
         if carriers < L:
             raise CapacityError(
                 f"too little capacity: {carriers} carriers for a {L}-bit codeword "
@@ -173,7 +177,7 @@ def _embed_doc(doc: MeshDocument, key: str | bytes, payload: str | None, method:
                 carriers=carriers, needed=L)
         # the embedder's last analysis is the detector's view of the stego mesh (see embed_arrays)
         check = detect_analyses({method: final}, key, bits)
-        ok = check.detected and (bits is not None or check.key_derived)
+        ok = check.detected and (check.crc_ok if bits is not None else check.key_derived)
         if ok or attempt == len(tries) - 1:
             break
     report(0.85)
@@ -191,6 +195,7 @@ def _embed_doc(doc: MeshDocument, key: str | bytes, payload: str | None, method:
                       key_derived=bits is None, codeword_bits=L, carriers=carriers,
                       copies=round(carriers / L, 3), skipped=skipped, vertices_moved=moved,
                       rms_displacement=rms, max_displacement=mx, hausdorff=haus, decimals=dec,
+                      cap_factor=factor,
                       parts=part_info)
     return new, rep, dec
 
@@ -231,13 +236,14 @@ def capacity_file(data: bytes, *, filename: str | None = None, method: str = DEF
     new = [p.vertices.copy() for p in doc.parts]
     info = []
     rng = np.random.default_rng(0)
-    for i in parts:
-        p = doc.parts[i]
-        cw = rng.integers(0, 2, codeword_length(None)).astype(np.uint8)
-        v, st, _ = embed_arrays(p.vertices, p.faces, key, cw, method, s, quantize=doc.quantize)
-        new[i] = v
-        carriers += st.carriers
-        info.append({"name": p.name, "vertices": int(len(p.vertices)), "carriers": st.carriers})
+    cw = rng.integers(0, 2, codeword_length(None)).astype(np.uint8)
+    vs, stats, _ = embed_parts([(doc.parts[i].vertices, doc.parts[i].faces) for i in parts], key, cw, method,
+                               s, quantize=doc.quantize)
+    for k, i in enumerate(parts):
+        new[i] = vs[k]
+        carriers += stats[k].carriers
+        info.append({"name": doc.parts[i].name, "vertices": int(len(doc.parts[i].vertices)),
+                     "carriers": stats[k].carriers})
     max_bits = 0
     for n in range(MAX_PAYLOAD_BITS, 0, -1):
         if codeword_length(n) <= carriers:

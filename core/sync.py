@@ -37,6 +37,8 @@ GRID_OFFSET = np.array([0.381966, 0.2360679, 0.1458980])
 CELLS_PER_RADIUS = 2.0
 #: valences a carrier may have
 MIN_DEGREE, MAX_DEGREE = 4, 12
+#: boundary vertices (open rings) may carry too, with at least this many neighbours
+MIN_BOUNDARY_DEGREE = 3
 
 
 def wl_colours(adj: Adjacency, rounds: int = ROUNDS, start: np.ndarray | None = None,
@@ -127,7 +129,8 @@ def vertex_labels(vertices: np.ndarray, adj: Adjacency, previous: Labels | None 
             return previous
         labels = combine(previous.connectivity, _fallback_cells(vertices, adj))
         return Labels(labels, previous.usable, True, previous.connectivity)
-    usable = (~adj.boundary) & (~adj.nonmanifold) & (adj.degree >= MIN_DEGREE) & (adj.degree <= MAX_DEGREE)
+    usable = (~adj.nonmanifold) & (adj.degree >= np.where(adj.boundary, MIN_BOUNDARY_DEGREE, MIN_DEGREE)) & (
+        adj.degree <= MAX_DEGREE)
     # more rings only where fewer cannot tell vertices apart (subdivided meshes); the choice
     # depends on connectivity only, so embedder and detector make the same one
     colours: np.ndarray | None = None

@@ -44,7 +44,7 @@ class Tolerances:
     max_local_move: float = 0.8     # displacement cap, units of the local scale
     max_move: float = 5e-3          # displacement cap, fraction of the bounding-box diagonal...
     coarse_move: float = 0.25       # ...or this fraction of the median local scale on coarse meshes
-    verify_rounds: int = 3          # embed -> re-analyse -> fix rounds
+    verify_rounds: int = 6          # embed -> re-analyse -> fix rounds
 
 
 TOL = Tolerances()
@@ -145,11 +145,38 @@ def target_positions(method: str, a: Analysis, v: np.ndarray, bits: np.ndarray, 
         rt = (y[:, 1:] ** 2 / a.lam[:, 1:]).sum(axis=1)
         fits = rho_t**2 >= rt
         y0 = sgn * np.sqrt(np.maximum(rho_t**2 - rt, 0.0) * l1)
-        rho = np.sqrt((y * y / a.lam).sum(axis=1))
-        shrink = np.where(rho > 0, rho_t / np.maximum(rho, 1e-300), 1.0)
-        y = np.where(fits[:, None], np.column_stack([y0, y[:, 1:]]), y * shrink[:, None])
+        inside = closest_on_ellipsoid(y, rho_t[:, None] * np.sqrt(a.lam))
+        y = np.where(fits[:, None], np.column_stack([y0, y[:, 1:]]), inside)
     new = a.mu + np.einsum("kij,kj->ki", a.axes, y)
     return np.where(need[:, None], new, v)
+
+
+def closest_on_ellipsoid(y: np.ndarray, axes: np.ndarray, iterations: int = 40) -> np.ndarray:
+    """Closest points on axis-aligned ellipsoids to points outside them.
+
+    Parameters
+    ----------
+    y : (k, 3) points, in each ellipsoid's principal frame, outside the ellipsoid.
+    axes : (k, 3) semi-axes.
+
+    Returns
+    -------
+    (k, 3) closest points: ``x_j = y_j a_j^2 / (a_j^2 + t)`` with ``t >= 0`` the root of
+    ``sum (y_j a_j / (a_j^2 + t))^2 = 1``, found by Newton's method from ``t = 0`` (the function
+    is convex and decreasing there, so the iterates increase monotonically to the root).
+    """
+    a2 = np.maximum(axes, 1e-300) ** 2
+    t = np.zeros(len(y))
+    for _ in range(iterations):
+        d = a2 + t[:, None]
+        f = (y * y * a2 / d**2).sum(axis=1) - 1.0
+        df = -2.0 * (y * y * a2 / d**3).sum(axis=1)
+        step = np.where(df < 0, -f / np.minimum(df, -1e-300), 0.0)
+        t = np.maximum(t + step, 0.0)
+    x = y * a2 / (a2 + t[:, None])
+    # land just inside whatever Newton left: rescale onto the ellipsoid
+    r = np.sqrt((x * x / a2).sum(axis=1))
+    return x / np.maximum(r, 1.0)[:, None]
 
 
 @dataclass(frozen=True)
@@ -160,15 +187,18 @@ class EmbedStats:
     rounds: int
 
 
-def embed_arrays(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, codeword: np.ndarray,
-                 method: str, strength: float, quantize=None, tol: Tolerances = TOL,
-                 ) -> tuple[np.ndarray, EmbedStats, Analysis]:
-    """Move carriers so that the detector reads ``codeword`` (already whitened).
+def embed_parts(meshes: list[tuple[np.ndarray, np.ndarray]], key: str | bytes, codeword: np.ndarray,
+                method: str, strength: float, quantize=None, tol: Tolerances = TOL,
+                ) -> tuple[list[np.ndarray], list[EmbedStats], list[Analysis]]:
+    """Move carriers of one or several meshes so that the detector reads ``codeword``.
 
     Parameters
     ----------
-    vertices, faces : arrays of the welded mesh.
+    meshes : list of (vertices (n, 3), faces (m, 3))
+        Welded meshes of one file; the payload is spread over all of them (see
+        :func:`assign_slots`).
     codeword : (L,) uint8
+        Whitened codeword.
     strength : float
         Margin ``|z|`` after embedding.
     quantize : callable, optional
@@ -177,9 +207,9 @@ def embed_arrays(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, code
 
     Returns
     -------
-    new_vertices : (n, 3) float64
-    stats : EmbedStats
-    analysis : Analysis
+    new_vertices : list of (n, 3) float64
+    stats : list of EmbedStats
+    analyses : list of Analysis
         The detector's view of the result (the verification).
 
     Notes
@@ -189,63 +219,89 @@ def embed_arrays(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, code
     only the moved carriers' statistics need re-reading after quantisation.  With the regular
     fallback the labels depend on geometry, so each round re-analyses the whole mesh.
     """
-    v0 = np.asarray(vertices, np.float64)
-    adj = adjacency(faces, len(v0))
-    diag = bbox_diagonal(v0)
-    v = v0.copy()
     L = len(codeword)
-    skipped = np.zeros(len(v0), bool)
-    labels = vertex_labels(v0, adj)
-    a = analyse(v0, faces, key, method, adj=adj, labels=labels, tol=tol)
-    carriers = len(a.carriers)
-    med = float(np.median(a.scale)) if len(a.scale) else 0.0
-    global_cap = max(tol.max_move * diag, tol.coarse_move * med)
-    rounds = 0
-    for rounds in range(1, tol.verify_rounds + 1):
-        bits = codeword[assign_slots(a, L)]
-        want = np.where(bits == 0, 1.0, -1.0)
-        margin = strength if rounds == 1 else 0.5 * strength
-        bad = (want * a.z < margin) & ~skipped[a.carriers]
-        if not bad.any():
+    v0s = [np.asarray(v, np.float64) for v, _ in meshes]
+    faces = [np.asarray(f, np.int64) for _, f in meshes]
+    adjs = [adjacency(f, len(v)) for v, f in zip(v0s, faces, strict=True)]
+    labels = [vertex_labels(v, adj) for v, adj in zip(v0s, adjs, strict=True)]
+    vs = [v.copy() for v in v0s]
+    skipped = [np.zeros(len(v), bool) for v in v0s]
+    an = [analyse(v, f, key, method, adj=adj, labels=lab, tol=tol)
+          for v, f, adj, lab in zip(v0s, faces, adjs, labels, strict=True)]
+    carriers = [len(a.carriers) for a in an]
+    caps = []
+    for v, a in zip(v0s, an, strict=True):
+        med = float(np.median(a.scale)) if len(a.scale) else 0.0
+        caps.append(max(tol.max_move * bbox_diagonal(v), tol.coarse_move * med))
+    ranked = sum(carriers) < HASHED_FROM * L
+    rounds = [0] * len(meshes)
+    for r in range(1, tol.verify_rounds + 1):
+        slots = assign_slots_all(an, L, ranked)
+        margin = strength if r == 1 else 0.5 * strength
+        any_bad = False
+        for k, a in enumerate(an):
+            bits = codeword[slots[k]]
+            want = np.where(bits == 0, 1.0, -1.0)
+            bad = (want * a.z < margin) & ~skipped[k][a.carriers]
+            if not bad.any():
+                continue
+            any_bad = True
+            rounds[k] = r
+            v, v0 = vs[k], v0s[k]
+            idx = a.carriers[bad]
+            sub = Analysis(idx, a.slot_hash[bad], a.z[bad], a.mu[bad], a.axes[bad], a.lam[bad], a.scale[bad],
+                           a.regular)
+            new = target_positions(method, sub, v[idx], bits[bad], strength, tol)
+            move = np.linalg.norm(new - v0[idx], axis=1)
+            okm = move <= np.minimum(tol.max_local_move * sub.scale, caps[k])
+            skipped[k][idx[~okm]] = True
+            moved_v = new[okm]
+            if quantize is not None:
+                moved_v = quantize(moved_v)
+            v[idx[okm]] = moved_v
+            if labels[k].regular:
+                labels[k] = vertex_labels(v, adjs[k], labels[k])
+                an[k] = analyse(v, faces[k], key, method, adj=adjs[k], labels=labels[k], tol=tol)
+            else:
+                sel = np.flatnonzero(bad)
+                a.z[sel] = statistic(method, v[idx], sub.mu, sub.axes, sub.lam, sub.scale, tol)
+        if not any_bad:
             break
-        idx = a.carriers[bad]
-        sub = Analysis(idx, a.slot_hash[bad], a.z[bad], a.mu[bad], a.axes[bad], a.lam[bad], a.scale[bad],
-                       a.regular)
-        new = target_positions(method, sub, v[idx], bits[bad], strength, tol)
-        move = np.linalg.norm(new - v0[idx], axis=1)
-        okm = move <= np.minimum(tol.max_local_move * sub.scale, global_cap)
-        skipped[idx[~okm]] = True
-        moved_v = new[okm]
-        if quantize is not None:
-            moved_v = quantize(moved_v)
-        v[idx[okm]] = moved_v
-        if labels.regular:
-            labels = vertex_labels(v, adj, labels)
-            a = analyse(v, faces, key, method, adj=adj, labels=labels, tol=tol)
-        else:
-            sel = np.flatnonzero(bad)
-            a.z[sel] = statistic(method, v[idx], sub.mu, sub.axes, sub.lam, sub.scale, tol)
-    moved = int(np.any(v != v0, axis=1).sum())
-    return v, EmbedStats(carriers, int(skipped.sum()), moved, rounds), a
+    stats = [EmbedStats(carriers[k], int(skipped[k].sum()), int(np.any(vs[k] != v0s[k], axis=1).sum()),
+                        rounds[k]) for k in range(len(meshes))]
+    return vs, stats, an
+
+
+def embed_arrays(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, codeword: np.ndarray,
+                 method: str, strength: float, quantize=None, tol: Tolerances = TOL,
+                 ) -> tuple[np.ndarray, EmbedStats, Analysis]:
+    """:func:`embed_parts` for a single mesh."""
+    vs, stats, an = embed_parts([(vertices, faces)], key, codeword, method, strength, quantize, tol)
+    return vs[0], stats[0], an[0]
 
 
 #: carriers per slot from which the embedder assigns slots by hash rather than by rank
 HASHED_FROM = 4
 
 
-def assign_slots(a: Analysis, L: int, ranked: bool | None = None) -> np.ndarray:
-    """Codeword slot of every carrier.
+def assign_slots_all(analyses: list[Analysis], L: int, ranked: bool | None = None) -> list[np.ndarray]:
+    """Codeword slot of every carrier of every part.
 
-    Many carriers (>= ``HASHED_FROM`` per slot): ``slot_hash mod L``, purely local, survives
-    cropping.  Few carriers: carriers ranked by ``slot_hash`` take the slots in turn (dense ranks,
-    so equal hashes share a slot), which covers every slot as soon as there are ``L`` carriers.
-    ``ranked=None`` chooses by the number of carriers (the embedder); the detector tries both,
+    Many carriers (>= ``HASHED_FROM`` per slot over the file): ``slot_hash mod L``, purely
+    local, so a cropped piece or one mesh of the file still decodes.  Few carriers: the carriers
+    of all parts ranked together by ``slot_hash`` take the slots in turn (dense ranks, so equal
+    hashes share a slot; the rank does not depend on the parts' order), which covers every slot
+    as soon as there are ``L`` carriers, as the paper's small models need.  ``ranked=None``
+    chooses by the number of carriers (the embedder's choice); the detector also tries the other,
     since cropping changes that number.
     """
-    h = a.slot_hash
+    total = sum(len(a.carriers) for a in analyses)
     if ranked is None:
-        ranked = len(h) < HASHED_FROM * L
+        ranked = total < HASHED_FROM * L
     if not ranked:
-        return (h % np.uint64(L)).astype(np.int64)
-    _, rank = np.unique(h, return_inverse=True)
-    return (rank.ravel() % L).astype(np.int64)
+        return [(a.slot_hash % np.uint64(L)).astype(np.int64) for a in analyses]
+    if total == 0:
+        return [np.zeros(0, np.int64) for _ in analyses]
+    _, rank = np.unique(np.concatenate([a.slot_hash for a in analyses]), return_inverse=True)
+    slots = (rank.ravel() % L).astype(np.int64)
+    return np.split(slots, np.cumsum([len(a.carriers) for a in analyses])[:-1])

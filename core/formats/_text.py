@@ -329,24 +329,30 @@ def format_coord(x: float, decimals: int | None) -> str:
 def round_like_text(v: np.ndarray, decimals: int) -> np.ndarray:
     """Exactly what ``float(format_coord(x, decimals))`` gives, for every element of ``v``.
 
-    :func:`numpy.round` agrees except near ties and when ``|x| * 10**decimals`` is too large
-    for its scaled arithmetic to be exact; those elements go through the formatter.
+    Where the decimal grid is finer than half the float spacing, that is ``x`` itself.
+    Elsewhere :func:`numpy.round` agrees except near ties and when ``|x| * 10**decimals`` is too
+    large for its scaled arithmetic to be exact; those few elements go through the formatter.
     """
     if decimals < 0:
         raise ValueError("decimals must be >= 0")
     v = np.asarray(v, dtype=np.float64)
     flat = v.reshape(-1)
-    if decimals <= 22:
-        out = np.round(flat, decimals)
-        with np.errstate(all="ignore"):
+    with np.errstate(all="ignore"):
+        finite = np.isfinite(flat)
+        exact = finite & (10.0**-decimals * 2.001 < np.spacing(np.abs(flat)))
+        if decimals <= 22:
+            out = np.round(flat, decimals)
             scaled = np.abs(flat) * 10.0**decimals
             frac = scaled - np.floor(scaled)
-            risky = ~(scaled < 2.0**50) | (np.abs(frac - 0.5) <= scaled * 2.0**-46 + 1e-9)
-        risky &= np.isfinite(flat)
-        idx = np.flatnonzero(risky)
-    else:
-        out = flat.copy()
-        idx = np.flatnonzero(np.isfinite(flat))
+            # fl(x * 10**d) is within scaled * 2**-53 of the exact product: rint agrees with the
+            # exact decimal rounding unless a half-integer is that close
+            risky = ~(scaled < 2.0**47) | (np.abs(frac - 0.5) <= scaled * 2.0**-51)
+            risky &= finite & ~exact
+        else:
+            out = flat.copy()
+            risky = finite & ~exact
+    out[exact] = flat[exact]
+    idx = np.flatnonzero(risky)
     if idx.size:
         text = " ".join(f"{x:.{decimals}f}" for x in flat[idx].tolist())
         out[idx] = np.fromstring(text, dtype=np.float64, sep=" ")

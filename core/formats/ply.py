@@ -346,9 +346,11 @@ def _read_ascii(
         elif el is face and index_prop is not None:
             n, start = lists[index_prop]
             vals = ragged_take(block.values, start, n)
-            if np.any(vals != np.floor(vals)):
-                raise MeshFormatError("non-integer face vertex index")
-            counts, flat = n, vals
+            bad = (vals != np.floor(vals)) | ~(vals >= 0) | ~(vals < vertex.count)
+            if bad.any():
+                face_no = int(np.searchsorted(np.cumsum(n), int(np.argmax(bad)), side="right"))
+                raise MeshFormatError("bad face vertex index", f"line {int(where[face_no])}")
+            counts, flat = n, vals.astype(np.int64)
         del block, cols, lists
     return positions, counts, flat
 

@@ -1,0 +1,36 @@
+"""Shared fixtures.
+
+Real meshes come from one setting: ``MESHMARK_TEST_MESHES`` (default ``../shared/meshes``,
+relative to the repository root).  Tests needing them skip with a visible reason when absent.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+MESHES_DIR = (ROOT / os.environ.get("MESHMARK_TEST_MESHES", "../shared/meshes")).resolve()
+
+SHARED_MESHES = [
+    "teapot.stl", "monkey.glb", "sink.3ds", "spot.obj", "decimated-max.obj", "fandisk.off",
+    "rocker-arm.obj", "beetle.off", "bun_zipper.ply", "armadillo.obj", "horse.ply", "dragon.ply",
+    "turbineblade.ply", "Duck.glb", "CesiumMilkTruck.glb",
+]
+
+
+def shared_mesh_path(name: str) -> Path:
+    """Path of a shared mesh, or skip the test with the reason."""
+    path = MESHES_DIR / name
+    if not path.is_file():
+        pytest.skip(f"shared mesh {name} not found in {MESHES_DIR} (set MESHMARK_TEST_MESHES)")
+    return path
+
+
+@pytest.fixture
+def meshes_dir() -> Path:
+    if not MESHES_DIR.is_dir():
+        pytest.skip(f"shared meshes not found at {MESHES_DIR} (set MESHMARK_TEST_MESHES)")
+    return MESHES_DIR
