@@ -67,8 +67,9 @@ class CapacityReport:
     method: str
     strength: float
     carriers: int
-    max_payload_bits: int            # largest payload (with CRC + code) that fits once
+    max_payload_bits: int            # largest payload with carriers >= 1.5 x its codeword (CRC + code)
     copies_of_default: float         # copies of the key-derived 32-bit code
+    codeword_bits_default: int       # 56: the key-derived code with Hamming(7,4)
     expected_rms_displacement: float
     expected_max_displacement: float
     parts: list[dict[str, Any]] = field(default_factory=list)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import dataclass
+from functools import lru_cache
 from math import comb, log
 
 import numpy as np
@@ -72,10 +73,13 @@ def codeword_length(n_payload: int | None) -> int:
     return 7 * -(-(n_payload + CRC_BITS) // 4)
 
 
+@lru_cache(maxsize=1024)
 def whitening(key: str | bytes, length: int) -> np.ndarray:
-    """Keyed mask XORed onto a codeword of ``length`` bits."""
+    """Keyed mask XORed onto a codeword of ``length`` bits (read-only array)."""
     raw = derive_bytes(key, f"meshmark-wht{length}", -(-length // 8))
-    return np.unpackbits(np.frombuffer(raw, np.uint8))[:length]
+    mask = np.unpackbits(np.frombuffer(raw, np.uint8))[:length]
+    mask.flags.writeable = False
+    return mask
 
 
 def encode(key: str | bytes, payload: np.ndarray | None) -> np.ndarray:
@@ -93,6 +97,15 @@ class Decoded:
 
     bits: np.ndarray        # (4k,) uint8
     confidence: np.ndarray  # (4k,) float64 in [0.5, 1]
+
+
+_SIGNS = 1.0 - 2.0 * _CODEWORDS  # (16, 7): +1 for a 0 bit
+
+
+def ml_bits(llr: np.ndarray) -> np.ndarray:
+    """Maximum-likelihood Hamming(7,4) message bits of per-slot LLRs (0 for an empty slot)."""
+    score = np.asarray(llr, np.float64).reshape(-1, 7) @ _SIGNS.T
+    return _MESSAGES[np.argmax(score, axis=1)].ravel().astype(np.uint8)
 
 
 def soft_decode(llr: np.ndarray) -> Decoded:

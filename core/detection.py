@@ -16,6 +16,7 @@ from core.coding import (
     CRC_BITS,
     KEY_CODE_BITS,
     MAX_PAYLOAD_BITS,
+    Decoded,
     binomial_tail,
     bits_to_str,
     codeword_length,
@@ -23,6 +24,7 @@ from core.coding import (
     hamming_encode,
     key_code,
     log_odds,
+    ml_bits,
     soft_decode,
     whitening,
 )
@@ -49,37 +51,45 @@ def adaptive_threshold(z: np.ndarray) -> float:
     return t
 
 
-def _votes(analyses: list[Analysis], key: str | bytes, L: int, adaptive: bool = False,
-           ranked: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Per-carrier slot and de-whitened soft vote in [-1, 1] (> 0 reads 0) for codeword length L.
+def _soft_values(analyses: list[Analysis], adaptive: bool) -> list[np.ndarray]:
+    """Per-carrier vote in [-1, 1] (> 0 reads 0), before de-whitening.
 
-    ``adaptive``: statistics are centred on :func:`adaptive_threshold` and scaled by their
-    median deviation (soft votes); otherwise the embedding's own boundary (z = 0) and hard votes.
+    ``adaptive``: statistics centred on :func:`adaptive_threshold` and scaled by their median
+    deviation (soft votes); otherwise the embedding's own boundary (z = 0) and hard votes.
     """
-    mask = whitening(key, L)
-    slots, votes = [], []
-    for a, s in zip(analyses, assign_slots_all(analyses, L, ranked), strict=True):
-        if len(a.carriers) == 0:
-            continue
-        if adaptive:
+    out = []
+    for a in analyses:
+        if adaptive and len(a.z):
             zc = a.z - adaptive_threshold(a.z)
             w = float(np.median(np.abs(zc))) or 1.0
-            u = np.clip(zc / w, -1.0, 1.0)
+            out.append(np.clip(zc / w, -1.0, 1.0))
         else:
-            u = np.where(a.z > 0, 1.0, -1.0)
-        vote = u * (1.0 - 2.0 * mask[s])
-        slots.append(s)
-        votes.append(vote)
-    if not slots:
+            out.append(np.where(a.z > 0, 1.0, -1.0))
+    return out
+
+
+def _votes(analyses: list[Analysis], values: list[np.ndarray], key: str | bytes, L: int,
+           ranked: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-carrier slot and de-whitened vote for codeword length L."""
+    mask = whitening(key, L)
+    slots = assign_slots_all(analyses, L, ranked)
+    if not slots or sum(len(x) for x in slots) == 0:
         return np.zeros(0, np.int64), np.zeros(0)
-    return np.concatenate(slots), np.concatenate(votes)
+    s = np.concatenate(slots)
+    return s, np.concatenate(values) * (1.0 - 2.0 * mask[s])
 
 
-def _decode(slots: np.ndarray, votes: np.ndarray, L: int):
-    """Two-pass soft decoding: estimate the carrier error rate, then exact posteriors."""
+def _decode(slots: np.ndarray, votes: np.ndarray, L: int) -> tuple[np.ndarray, np.ndarray]:
+    """ML message bits from the per-slot vote sums (the LLR scale does not change the argmax)."""
     sums = np.bincount(slots, votes, minlength=L)
-    dec = soft_decode(log_odds(0.25) * sums)
-    cw = hamming_encode(dec.bits)
+    return ml_bits(sums), sums
+
+
+def _posterior(slots: np.ndarray, votes: np.ndarray, sums: np.ndarray,
+               bits: np.ndarray) -> tuple[Decoded, float]:
+    """Calibrated decoding: carrier error rate ``p`` estimated against the decoded codeword,
+    then exact per-bit posteriors with LLR ``log((1 - p) / p)`` per vote."""
+    cw = hamming_encode(bits)
     disagree = float(((1.0 - 2.0 * cw[slots]) * votes < 0).sum()) if len(slots) else 0.0
     p = (disagree + 1.0) / (len(slots) + 2.0)
     return soft_decode(log_odds(p) * sums), p
@@ -87,7 +97,7 @@ def _decode(slots: np.ndarray, votes: np.ndarray, L: int):
 
 #: decoding variants (adaptive threshold, slot assignment): the embedder's own, then the ones
 #: that survive attacks (global shifts of the statistics; crops that change the carrier count)
-VARIANTS = ((False, None), (True, None), (False, True), (True, True), (False, False), (True, False))
+VARIANTS = ((False, None), (True, None), (True, True), (True, False))
 
 
 def _same_as_auto(analyses: list[Analysis], L: int, ranked: bool | None) -> bool:
@@ -99,8 +109,10 @@ def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
                     expected: np.ndarray | None = None) -> DetectResult:
     """Decide from the analyses of every part, for each method tried.
 
-    Candidates, in order: for each method, with the embedding's boundary then with the adaptive
-    threshold, every explicit payload length (CRC test) and the key-derived code (bit errors).
+    For each method, decoding variants (:data:`VARIANTS`) are tried in order over every explicit
+    payload length (CRC test) and the key-derived code (bit errors); the first success of a method
+    is its answer.  When several methods succeed (their statistics are correlated: both read the
+    offset along ``e1``), the one whose carriers disagree least with the decoded codeword wins.
     """
     n_tries = len(VARIANTS) * len(per_method)
     lengths = [len(expected)] if expected is not None else list(range(1, MAX_PAYLOAD_BITS + 1))
@@ -108,63 +120,18 @@ def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
     fp_explicit = sum(2.0 ** -(CRC_BITS + (codeword_length(n) // 7 * 4 - n - CRC_BITS)) for n in lengths)
     fp_key = binomial_tail(KEY_CODE_MAX_ERRORS, KEY_CODE_BITS) if expected is None else 0.0
     fpp_total = min(1.0, n_tries * (fp_explicit + fp_key))
-    code = key_code(key)
-    by_L: dict[int, list[int]] = {}
-    for n in lengths:
-        by_L.setdefault(codeword_length(n), []).append(n)
-    best: DetectResult | None = None
+    found: list[tuple[float, DetectResult]] = []
+    closest: DetectResult | None = None
     for method, analyses in per_method.items():
-        carriers = int(sum(len(a.carriers) for a in analyses))
-        parts = [{"carriers": int(len(a.carriers)), "regular_fallback": bool(a.regular)} for a in analyses]
-        for adaptive, ranked in VARIANTS:
-            for L, ns in by_L.items():
-                if _same_as_auto(analyses, L, ranked):
-                    continue
-                slots, votes = _votes(analyses, key, L, adaptive, ranked)
-                if len(slots) == 0:
-                    continue
-                dec, _ = _decode(slots, votes, L)
-                for n in ns:
-                    msg = dec.bits
-                    payload, crc, pad = msg[:n], msg[n:n + CRC_BITS], msg[n + CRC_BITS:]
-                    crc_ok = bool(np.array_equal(crc, crc_bits(payload)) and not pad.any())
-                    errors: int | None = None
-                    p_value: float | None = None
-                    if expected is not None:
-                        errors = int((payload != expected).sum())
-                        p_value = binomial_tail(errors, n)
-                        ok = (crc_ok and errors == 0) or p_value * n_tries < EXPECTED_P_THRESHOLD
-                        fpp = min(1.0, n_tries * p_value) if not crc_ok else fpp_total
-                    else:
-                        ok, fpp = crc_ok, fpp_total
-                    if not ok and (expected is None or (best is not None and best.bit_errors is not None
-                                                        and errors is not None
-                                                        and best.bit_errors <= errors)):
-                        continue
-                    res = DetectResult(
-                        detected=ok, payload=bits_to_str(payload),
-                        bit_confidence=[round(float(c), 6) for c in dec.confidence[:n]],
-                        false_positive_probability=fpp if ok else 1.0,
-                        copies=round(carriers / L, 3), carriers=carriers, crc_ok=crc_ok, method=method,
-                        key_derived=False, bit_errors=errors, p_value=p_value, parts=parts)
-                    if ok:
-                        return res
-                    best = res
-            if expected is None and not _same_as_auto(analyses, codeword_length(None), ranked):
-                L = codeword_length(None)
-                slots, votes = _votes(analyses, key, L, adaptive, ranked)
-                if len(slots):
-                    dec, _ = _decode(slots, votes, L)
-                    errors = int((dec.bits[:KEY_CODE_BITS] != code).sum())
-                    if errors <= KEY_CODE_MAX_ERRORS:
-                        return DetectResult(
-                            detected=True, payload=bits_to_str(dec.bits[:KEY_CODE_BITS]),
-                            bit_confidence=[round(float(c), 6) for c in dec.confidence[:KEY_CODE_BITS]],
-                            false_positive_probability=fpp_total, copies=round(carriers / L, 3),
-                            carriers=carriers, crc_ok=False, method=method, key_derived=True,
-                            bit_errors=errors, p_value=binomial_tail(errors, KEY_CODE_BITS), parts=parts)
-    if best is not None:
-        return best
+        hit, near = _detect_method(method, analyses, key, expected, lengths, n_tries, fpp_total)
+        if hit is not None:
+            found.append(hit)
+        if near is not None and (closest is None or (near.bit_errors or 0) < (closest.bit_errors or 0)):
+            closest = near
+    if found:
+        return min(found, key=lambda item: item[0])[1]
+    if closest is not None:
+        return closest
     method0 = next(iter(per_method), None)
     analyses0 = per_method.get(method0, []) if method0 else []
     carriers0 = int(sum(len(a.carriers) for a in analyses0))
@@ -173,3 +140,64 @@ def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
                         parts=[{"carriers": int(len(a.carriers))} for a in analyses0])
 
 
+def _detect_method(method: str, analyses: list[Analysis], key: str | bytes, expected: np.ndarray | None,
+                   lengths: list[int], n_tries: int, fpp_total: float
+                   ) -> tuple[tuple[float, DetectResult] | None, DetectResult | None]:
+    """First successful candidate of one method (with its carrier error rate), and, with an
+    expected payload, the closest failed one."""
+    code = key_code(key)
+    by_L: dict[int, list[int]] = {}
+    for n in lengths:
+        by_L.setdefault(codeword_length(n), []).append(n)
+    carriers = int(sum(len(a.carriers) for a in analyses))
+    parts = [{"carriers": int(len(a.carriers)), "regular_fallback": bool(a.regular)} for a in analyses]
+    near: DetectResult | None = None
+    values = {adaptive: _soft_values(analyses, adaptive) for adaptive in (False, True)}
+    for adaptive, ranked in VARIANTS:
+        for L, ns in by_L.items():
+            if _same_as_auto(analyses, L, ranked):
+                continue
+            slots, votes = _votes(analyses, values[adaptive], key, L, ranked)
+            if len(slots) == 0:
+                continue
+            msg, sums = _decode(slots, votes, L)
+            for n in ns:
+                payload, crc, pad = msg[:n], msg[n:n + CRC_BITS], msg[n + CRC_BITS:]
+                crc_ok = bool(np.array_equal(crc, crc_bits(payload)) and not pad.any())
+                errors: int | None = None
+                p_value: float | None = None
+                if expected is not None:
+                    errors = int((payload != expected).sum())
+                    p_value = binomial_tail(errors, n)
+                    ok = (crc_ok and errors == 0) or p_value * n_tries < EXPECTED_P_THRESHOLD
+                    fpp = fpp_total if crc_ok and errors == 0 else min(1.0, n_tries * p_value)
+                else:
+                    ok, fpp = crc_ok, fpp_total
+                if not ok and (expected is None or (near is not None and near.bit_errors is not None
+                                                    and errors is not None and near.bit_errors <= errors)):
+                    continue
+                dec, p_err = _posterior(slots, votes, sums, msg)
+                res = DetectResult(
+                    detected=ok, payload=bits_to_str(payload),
+                    bit_confidence=[round(float(c), 6) for c in dec.confidence[:n]],
+                    false_positive_probability=fpp if ok else 1.0,
+                    copies=round(carriers / L, 3), carriers=carriers, crc_ok=crc_ok, method=method,
+                    key_derived=False, bit_errors=errors, p_value=p_value, parts=parts)
+                if ok:
+                    return (p_err, res), None
+                near = res
+        L = codeword_length(None)
+        if expected is None and not _same_as_auto(analyses, L, ranked):
+            slots, votes = _votes(analyses, values[adaptive], key, L, ranked)
+            if len(slots):
+                msg, sums = _decode(slots, votes, L)
+                errors = int((msg[:KEY_CODE_BITS] != code).sum())
+                if errors <= KEY_CODE_MAX_ERRORS:
+                    dec, p_err = _posterior(slots, votes, sums, msg)
+                    return (p_err, DetectResult(
+                        detected=True, payload=bits_to_str(dec.bits[:KEY_CODE_BITS]),
+                        bit_confidence=[round(float(c), 6) for c in dec.confidence[:KEY_CODE_BITS]],
+                        false_positive_probability=fpp_total, copies=round(carriers / L, 3),
+                        carriers=carriers, crc_ok=False, method=method, key_derived=True,
+                        bit_errors=errors, p_value=binomial_tail(errors, KEY_CODE_BITS), parts=parts)), None
+    return None, near

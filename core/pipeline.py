@@ -29,9 +29,11 @@ from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, MeshDocument, read_mesh
 from core.mesh import adjacency, bbox_diagonal
 from core.sync import vertex_labels
-from core.watermark import TOL, Analysis, analyse_methods, embed_parts
+from core.watermark import TOL, Analysis, analyse_methods, embed_parts, own_copy
 
 MAX_KEY_BYTES = 4096
+#: carriers per codeword bit that capacity asks for (skipped carriers and slot collisions)
+CAPACITY_MARGIN = 1.5
 #: displacement caps tried in turn (multiples of the defaults in core.watermark.Tolerances)
 CAP_FACTORS = (1.0, 2.0, 4.0)
 
@@ -72,6 +74,13 @@ def _analyses(doc: MeshDocument, parts: list[int], key: str | bytes, methods: li
         for m, a in analyse_methods(v, f, key, methods, adj=adj, labels=labels).items():
             out[m].append(a)
     return out
+
+
+def _reads_back(check: DetectResult, bits: np.ndarray | None) -> bool:
+    """The payload was recovered exactly (CRC, or the key-derived code with no bit error)."""
+    if bits is not None:
+        return check.detected and check.crc_ok
+    return check.detected and check.key_derived and check.bit_errors == 0
 
 
 def _distortion(doc: MeshDocument, new: list[np.ndarray]) -> tuple[int, float, float, float]:
@@ -176,8 +185,9 @@ def _embed_doc(doc: MeshDocument, key: str | bytes, payload: str | None, method:
                 f"{'' if bits is None else 'CRC-32 and '}Hamming(7,4)) at strength {s}",
                 carriers=carriers, needed=L)
         # the embedder's last analysis is the detector's view of the stego mesh (see embed_arrays)
-        check = detect_analyses({method: final}, key, bits)
-        ok = check.detected and (check.crc_ok if bits is not None else check.key_derived)
+        # and so is every part with room for a copy of its own (a mesh extracted from the file)
+        groups = [final] + [[a] for a in final if len(final) > 1 and own_copy(a, L)]
+        ok = all(_reads_back(detect_analyses({method: g}, key, bits), bits) for g in groups)
         if ok or attempt == len(tries) - 1:
             break
     report(0.85)
@@ -246,12 +256,13 @@ def capacity_file(data: bytes, *, filename: str | None = None, method: str = DEF
                      "carriers": stats[k].carriers})
     max_bits = 0
     for n in range(MAX_PAYLOAD_BITS, 0, -1):
-        if codeword_length(n) <= carriers:
+        if codeword_length(n) * CAPACITY_MARGIN <= carriers:
             max_bits = n
             break
     _, rms, mx, _ = _distortion(doc, new)
     return CapacityReport(method=method, strength=s, carriers=carriers, max_payload_bits=max_bits,
                           copies_of_default=round(carriers / codeword_length(None), 3),
+                          codeword_bits_default=codeword_length(None),
                           expected_rms_displacement=rms, expected_max_displacement=mx, parts=info)
 
 

@@ -282,6 +282,8 @@ def embed_arrays(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, code
 
 #: carriers per slot from which the embedder assigns slots by hash rather than by rank
 HASHED_FROM = 4
+#: carriers per slot from which one part of a multi-mesh file is ranked on its own
+OWN_RANKING_FROM = 1.5
 
 
 def assign_slots_all(analyses: list[Analysis], L: int, ranked: bool | None = None) -> list[np.ndarray]:
@@ -291,7 +293,8 @@ def assign_slots_all(analyses: list[Analysis], L: int, ranked: bool | None = Non
     local, so a cropped piece or one mesh of the file still decodes.  Few carriers: the carriers
     of all parts ranked together by ``slot_hash`` take the slots in turn (dense ranks, so equal
     hashes share a slot; the rank does not depend on the parts' order), which covers every slot
-    as soon as there are ``L`` carriers, as the paper's small models need.  ``ranked=None``
+    as soon as there are ``L`` carriers, as the paper's small models need (a part with
+    ``OWN_RANKING_FROM x L`` carriers is ranked alone, so that it decodes when extracted).  ``ranked=None``
     chooses by the number of carriers (the embedder's choice); the detector also tries the other,
     since cropping changes that number.
     """
@@ -300,8 +303,30 @@ def assign_slots_all(analyses: list[Analysis], L: int, ranked: bool | None = Non
         ranked = total < HASHED_FROM * L
     if not ranked:
         return [(a.slot_hash % np.uint64(L)).astype(np.int64) for a in analyses]
-    if total == 0:
-        return [np.zeros(0, np.int64) for _ in analyses]
-    _, rank = np.unique(np.concatenate([a.slot_hash for a in analyses]), return_inverse=True)
-    slots = (rank.ravel() % L).astype(np.int64)
-    return np.split(slots, np.cumsum([len(a.carriers) for a in analyses])[:-1])
+    out = [np.zeros(0, np.int64) for _ in analyses]
+    # a part that can hold a copy by itself is ranked alone (so it decodes when extracted);
+    # the small ones are ranked together
+    small = []
+    for k, a in enumerate(analyses):
+        if own_copy(a, L):
+            out[k] = _dense_rank(a.slot_hash) % L
+        elif len(a.carriers):
+            small.append(k)
+    if small:
+        slots = _dense_rank(np.concatenate([analyses[k].slot_hash for k in small])) % L
+        for k, part in zip(small, np.split(slots, np.cumsum([len(analyses[k].carriers) for k in small])[:-1]),
+                           strict=True):
+            out[k] = part
+    return out
+
+
+def own_copy(a: Analysis, L: int) -> bool:
+    """A part has room for a copy of its own: enough *distinct* slot hashes (symmetric parts
+    repeat labels, and equal labels share a slot)."""
+    return len(a.carriers) >= OWN_RANKING_FROM * L and np.unique(a.slot_hash).size >= OWN_RANKING_FROM * L
+
+
+def _dense_rank(h: np.ndarray) -> np.ndarray:
+    """Rank of each value among the distinct values (equal values share a rank)."""
+    _, rank = np.unique(h, return_inverse=True)
+    return rank.ravel().astype(np.int64)

@@ -137,7 +137,7 @@ def read(data: bytes, limits: Limits, name: str = "off") -> OffDocument:
     slot_lines = lines.starts[vl]
     v_begin, v_stop = lines.first[vl], lines.nexts[vl]
     f_begin, f_stop = lines.first[fl], lines.nexts[fl]
-    del lines, content, body
+    del lines, content, body, tokens_of
 
     text = strip_comments(gather(arr, v_begin, v_stop))
     del v_begin, v_stop

@@ -371,6 +371,16 @@ def _record_dtype(props: list[_Property], endian: str, lens: tuple[int, ...]) ->
     return np.dtype(fields)
 
 
+def _check_room(data: bytes, pos: int, el: _Element) -> None:
+    """The declared record count must fit in the bytes left (checked before allocating)."""
+    need = el.count * el.min_size()
+    if need > len(data) - pos:
+        raise MeshFormatError(
+            f"file ends early: {el.count} {el.name} records need at least {need} bytes, "
+            f"{len(data) - pos} left", f"byte {pos}"
+        )
+
+
 def _runs(
     data: bytes, pos: int, el: _Element, endian: str
 ) -> Iterator[tuple[int, int, np.ndarray]]:
@@ -378,11 +388,7 @@ def _runs(
     sharing the same list lengths (one run for fixed-size records).  Ends at the element end.
     """
     size = len(data)
-    if el.count * el.min_size() > size - pos:
-        raise MeshFormatError(
-            f"file ends early: {el.count} {el.name} records need at least "
-            f"{el.count * el.min_size()} bytes, {size - pos} left", f"byte {pos}"
-        )
+    _check_room(data, pos, el)
     if not any(p.is_list for p in el.props):
         dt = _record_dtype(el.props, endian, ())
         yield 0, pos, np.frombuffer(data, dtype=dt, count=el.count, offset=pos)
@@ -440,6 +446,7 @@ def _read_binary(
             continue
         is_vertex, is_face = el is vertex, el is face and index_prop is not None
         if is_vertex:
+            _check_room(data, pos, el)
             positions = np.empty((el.count, 3))
         for first, off, recs in _runs(data, pos, el, endian):
             m = recs.size
@@ -448,8 +455,9 @@ def _read_binary(
                 fields = dt.fields
                 assert fields is not None
                 runs.append([first, off, dt.itemsize] + [int(fields[f"p{k}"][1]) for k in coord_idx])
-                for c, k in enumerate(coord_idx):
-                    positions[first : first + m, c] = recs[f"p{k}"]
+                with np.errstate(invalid="ignore"):  # signalling NaNs; refused after the walk
+                    for c, k in enumerate(coord_idx):
+                        positions[first : first + m, c] = recs[f"p{k}"]
             elif is_face:
                 n = int(recs[f"n{index_prop}"][0]) if m else 0
                 counts_l.append(np.full(m, n, np.int64))

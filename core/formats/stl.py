@@ -121,7 +121,8 @@ def read(data: bytes, limits: Limits, name: str = "stl") -> StlDocument:
     if count is not None:
         limits.check("faces", count)
         facets = np.frombuffer(data, dtype=_FACET, count=count, offset=84)
-        positions = facets["corners"].reshape(-1, 3).astype(np.float64)
+        with np.errstate(invalid="ignore"):  # signalling NaNs; refused just below
+            positions = facets["corners"].reshape(-1, 3).astype(np.float64)
         del facets
         check_finite(positions)
         encoding, slot_lines, decimals, part_name = "binary", None, None, "mesh0"
