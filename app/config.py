@@ -1,0 +1,78 @@
+"""Service settings: one pydantic-settings class read from ``MESHMARK_*`` environment variables.
+
+Every default here is also in the README's limits table; change both together.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from core.formats.base import Limits
+
+MIB = 1024 * 1024
+
+#: admission slots per worker process when ``queue_size`` is not set
+QUEUE_SLOTS_PER_WORKER = 8
+
+
+class Settings(BaseSettings):
+    """Limits and knobs of the HTTP service (the CLI's ``serve`` uses them too)."""
+
+    model_config = SettingsConfigDict(env_prefix="MESHMARK_", extra="ignore")
+
+    host: str = "127.0.0.1"
+    port: int = Field(default=8000, ge=0, le=65535)
+    log_level: str = "info"
+
+    # worker processes doing the mesh work
+    workers: int = Field(default=2, ge=1)
+    worker_max_tasks: int = Field(default=100, ge=0)  # tasks before a worker is recycled; 0 = never
+    worker_memory_mb: int = Field(default=2048, ge=0)  # RLIMIT_AS of each worker; 0 = no limit
+    job_timeout_seconds: float = Field(default=120.0, gt=0)  # run time of one task in a worker
+    queue_size: int | None = Field(default=None, ge=1)  # tasks running + waiting; None = 8 x workers
+
+    # inputs
+    max_upload_bytes: int = Field(default=64 * MIB, ge=1)
+    max_vertices: int = Field(default=2_000_000, ge=1)
+    max_faces: int = Field(default=4_000_000, ge=1)
+    max_meshes: int = Field(default=256, ge=1)
+    max_json_bytes: int = Field(default=16 * MIB, ge=1)  # glTF JSON chunk
+
+    # jobs
+    job_result_ttl_seconds: float = Field(default=3600.0, gt=0)  # finished jobs are kept this long
+    max_stored_jobs: int = Field(default=256, ge=1)  # jobs in the store, finished or not
+
+    # security: caller API keys (comma-separated; empty = no authentication), and the HMAC secret of
+    # the key fingerprints in logs (None = random per process)
+    api_keys: Annotated[list[SecretStr], NoDecode] = Field(default_factory=list)
+    log_fingerprint_secret: SecretStr | None = None
+
+    @field_validator("api_keys", mode="before")
+    @classmethod
+    def _split_api_keys(cls, value: object) -> object:
+        if isinstance(value, str):
+            return [k.strip() for k in value.split(",") if k.strip()]
+        return value
+
+    @property
+    def admission_slots(self) -> int:
+        """Tasks allowed in the pool at once (running + waiting) before answering 429."""
+        return self.queue_size or QUEUE_SLOTS_PER_WORKER * self.workers
+
+    @property
+    def max_body_bytes(self) -> int:
+        """Request body cap: the mesh limit plus room for the multipart envelope and text fields."""
+        return self.max_upload_bytes + 64 * 1024
+
+    def limits(self) -> Limits:
+        """Engine limits checked before the engine allocates anything proportional to a count."""
+        return Limits(
+            max_bytes=self.max_upload_bytes,
+            max_vertices=self.max_vertices,
+            max_faces=self.max_faces,
+            max_meshes=self.max_meshes,
+            max_json_bytes=self.max_json_bytes,
+        )

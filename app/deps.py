@@ -1,0 +1,86 @@
+"""``Annotated`` dependencies: settings, worker pool, jobs, caller authentication, watermark key."""
+
+from __future__ import annotations
+
+import hmac
+from typing import Annotated
+
+from fastapi import Depends, Form, Header, Request
+from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
+
+from app.config import Settings
+from app.inputs import InputError, key_from_header, validate_key
+from app.jobs import JobRunner, JobStore
+from app.problems import BAD_FORM, NOT_READY, UNAUTHORIZED, ProblemError
+from app.workers.pool import WorkerPool
+
+
+def get_settings(request: Request) -> Settings:
+    settings: Settings = request.app.state.settings
+    return settings
+
+
+def get_pool(request: Request) -> WorkerPool:
+    pool: WorkerPool | None = getattr(request.app.state, "pool", None)
+    if pool is None:
+        raise ProblemError(NOT_READY, "the worker pool is not running")
+    return pool
+
+
+def get_runner(request: Request) -> JobRunner:
+    runner: JobRunner | None = getattr(request.app.state, "runner", None)
+    if runner is None:
+        raise ProblemError(NOT_READY, "the job runner is not running")
+    return runner
+
+
+def get_store(runner: Annotated[JobRunner, Depends(get_runner)]) -> JobStore:
+    return runner.store
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+PoolDep = Annotated[WorkerPool, Depends(get_pool)]
+RunnerDep = Annotated[JobRunner, Depends(get_runner)]
+StoreDep = Annotated[JobStore, Depends(get_store)]
+
+_bearer = HTTPBearer(auto_error=False, description="One of MESHMARK_API_KEYS (when set).")
+_api_key = APIKeyHeader(name="X-API-Key", auto_error=False, description="Same keys as the bearer token.")
+
+
+def require_caller(
+    settings: SettingsDep,
+    bearer: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+    api_key: Annotated[str | None, Depends(_api_key)],
+) -> None:
+    """Checks the caller's API key when ``MESHMARK_API_KEYS`` is set (otherwise anyone may call)."""
+    if not settings.api_keys:
+        return
+    given = bearer.credentials if bearer is not None else api_key
+    if given is not None:
+        raw = given.encode()
+        # compare with every key, without stopping early, so timing tells nothing
+        matches = [hmac.compare_digest(raw, k.get_secret_value().encode()) for k in settings.api_keys]
+        if any(matches):
+            return
+    raise ProblemError(UNAUTHORIZED, "send a valid API key as 'Authorization: Bearer <key>' or 'X-API-Key'",
+                       headers={"WWW-Authenticate": "Bearer"})
+
+
+def watermark_key(
+    key: Annotated[str | None, Form(description="Secret watermark key, 1-1024 characters "
+                                    "(or the X-Watermark-Key header).")] = None,
+    x_watermark_key: Annotated[str | None, Header(description="The watermark key, instead of the "
+                                                  "`key` form field.")] = None,
+) -> str:
+    """The watermark key from the form field or the header (exactly one of them)."""
+    try:
+        if key is not None and x_watermark_key is not None:
+            raise InputError("give the key once: the form field 'key' or the header X-Watermark-Key")
+        if x_watermark_key is not None:
+            return validate_key(key_from_header(x_watermark_key))
+        return validate_key(key)
+    except InputError as exc:
+        raise ProblemError(BAD_FORM, str(exc)) from None
+
+
+WatermarkKey = Annotated[str, Depends(watermark_key)]

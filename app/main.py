@@ -1,0 +1,96 @@
+"""The FastAPI application: ``create_app(settings)`` wires routes, problems, middleware and the
+worker pool (started and stopped by the lifespan).  ``app`` is the default instance for uvicorn."""
+
+from __future__ import annotations
+
+import logging
+import secrets
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import Depends, FastAPI
+
+from app.config import Settings
+from app.deps import require_caller
+from app.jobs import InMemoryJobStore, JobRunner
+from app.metrics import Metrics
+from app.middleware import BodyLimitMiddleware, MetricsMiddleware
+from app.problems import BAD_FORM, Problem, install_problem_handlers, problem_responses
+from app.routes import V1_ROUTERS, health
+from app.workers.pool import WorkerPool
+
+log = logging.getLogger("meshmark.app")
+
+DESCRIPTION = """Hide a keyed bitstring in the geometry of a 3-D triangle mesh, and find it again
+from the mesh and the key alone (blind detection).
+
+Errors are RFC 9457 problem details (`application/problem+json`) whose `type` is one of the
+`https://meshmark.dev/problems/<slug>` URIs listed in the README. The watermark key is never echoed
+or logged."""
+
+
+@asynccontextmanager
+async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+    settings: Settings = app.state.settings
+    pool = WorkerPool(workers=settings.workers, slots=settings.admission_slots,
+                      timeout=settings.job_timeout_seconds, memory_mb=settings.worker_memory_mb,
+                      max_tasks=settings.worker_max_tasks)
+    await pool.start()
+    runner = JobRunner(InMemoryJobStore(), pool, ttl=settings.job_result_ttl_seconds,
+                       max_jobs=settings.max_stored_jobs)
+    app.state.pool, app.state.runner = pool, runner
+    log.info("MeshMark ready: %d workers, %d task slots", settings.workers, settings.admission_slots)
+    try:
+        yield
+    finally:
+        app.state.pool = app.state.runner = None
+        await runner.close()
+        await pool.stop()
+
+
+def _document(schema: dict[str, Any]) -> dict[str, Any]:
+    """FastAPI's document, told the truth: 422s are ``bad-form`` problems (see
+    :mod:`app.problems`) and API keys are optional (only checked when configured)."""
+    schemas = schema.setdefault("components", {}).setdefault("schemas", {})
+    schemas["Problem"] = Problem.model_json_schema(ref_template="#/components/schemas/{model}")
+    for name in ("HTTPValidationError", "ValidationError"):
+        schemas.pop(name, None)
+    bad_form = problem_responses(BAD_FORM)[BAD_FORM.status]
+    for operations in schema.get("paths", {}).values():
+        for operation in operations.values():
+            response = operation.get("responses", {}).get("422")
+            if response is not None and "application/problem+json" not in response.get("content", {}):
+                operation["responses"]["422"] = bad_form
+            if operation.get("security"):
+                operation["security"].append({})
+    return schema
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+    app = FastAPI(title="MeshMark", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
+    app.state.settings = settings
+    secret = settings.log_fingerprint_secret
+    app.state.fingerprint_secret = (secret.get_secret_value().encode() if secret is not None
+                                    else secrets.token_bytes(32))
+    app.state.metrics = Metrics()
+
+    install_problem_handlers(app)
+    for router in V1_ROUTERS:
+        app.include_router(router, dependencies=[Depends(require_caller)])
+    app.include_router(health.router)
+
+    app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
+    app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)  # outermost: sees the 413s too
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            app.openapi_schema = _document(FastAPI.openapi(app))
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+    return app
+
+
+app = create_app()

@@ -1,0 +1,78 @@
+"""Engine results as HTTP responses, shared by the synchronous routes and the job results."""
+
+from __future__ import annotations
+
+import json
+import re
+from typing import Any
+
+from fastapi import Response
+
+from app.jobs.store import JobResult
+from core.api import EmbeddedFile
+
+#: documented response headers of an embedding (name -> description); the README lists the same
+EMBED_HEADERS: dict[str, str] = {
+    "X-MeshMark-Method": "Embedding method (`ellipsoids` or `planes`).",
+    "X-MeshMark-Payload-Bits": "Payload length in bits (32 for the key-derived code).",
+    "X-MeshMark-Carriers": "Carriers moved, all mesh parts together.",
+    "X-MeshMark-Copies": "Carriers per codeword bit.",
+    "X-MeshMark-Vertices-Moved": "Vertices whose position changed.",
+    "X-MeshMark-RMS-Displacement": "RMS vertex displacement / bounding-box diagonal.",
+    "X-MeshMark-Max-Displacement": "Largest vertex displacement / bounding-box diagonal.",
+    "X-MeshMark-Hausdorff": "Symmetric Hausdorff distance / bounding-box diagonal.",
+    "X-MeshMark-Report": "The whole embedding report as compact JSON.",
+}
+
+_UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
+
+
+def safe_stem(filename: str | None) -> str:
+    """A file-name stem that is safe inside a quoted ``Content-Disposition`` value."""
+    name = re.split(r"[\\/]", filename or "")[-1]
+    stem = name.rsplit(".", 1)[0] if "." in name else name
+    stem = _UNSAFE.sub("_", stem).strip("._")[:80]
+    return stem or "mesh"
+
+
+def _json(value: Any) -> bytes:
+    return json.dumps(value, separators=(",", ":"), allow_nan=False).encode()
+
+
+def embedded_result(embedded: EmbeddedFile, filename: str | None) -> JobResult:
+    report = embedded.report
+    headers = {
+        "Content-Disposition": f'attachment; filename="{safe_stem(filename)}.marked.{embedded.extension}"',
+        "X-MeshMark-Method": report.method,
+        "X-MeshMark-Payload-Bits": str(report.payload_bits),
+        "X-MeshMark-Carriers": str(report.carriers),
+        "X-MeshMark-Copies": f"{report.copies:g}",
+        "X-MeshMark-Vertices-Moved": str(report.vertices_moved),
+        "X-MeshMark-RMS-Displacement": f"{report.rms_displacement:.6g}",
+        "X-MeshMark-Max-Displacement": f"{report.max_displacement:.6g}",
+        "X-MeshMark-Hausdorff": f"{report.hausdorff:.6g}",
+        "X-MeshMark-Report": _json(report.to_dict()).decode("ascii"),
+    }
+    return JobResult(embedded.data, embedded.media_type, headers)
+
+
+def json_result(value: Any) -> JobResult:
+    """A dataclass result with ``to_dict()`` as a JSON body."""
+    return JobResult(_json(value.to_dict()), "application/json")
+
+
+def as_response(result: JobResult) -> Response:
+    return Response(result.body, media_type=result.media_type, headers=result.headers)
+
+
+def embed_openapi_response(description: str = "The watermarked mesh, in the format and encoding it was "
+                           "uploaded in.", extra_content: dict[str, Any] | None = None,
+                           ) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses`` entry of a watermarked-mesh answer, with its documented headers."""
+    binary = {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}
+    headers = {"Content-Disposition": {"schema": {"type": "string"},
+                                       "description": 'attachment; filename="<stem>.marked.<ext>"'}}
+    headers.update({name: {"schema": {"type": "string"}, "description": text}
+                    for name, text in EMBED_HEADERS.items()})
+    return {200: {"description": description, "content": {**binary, **(extra_content or {})},
+                  "headers": headers}}

@@ -1,0 +1,22 @@
+"""``POST /v1/capacity``: how much a mesh can carry, without embedding."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Response
+
+from app.deps import PoolDep
+from app.forms import CapacityForm, StrictFormRoute
+from app.problems import problem_responses
+from app.results import as_response, json_result
+from app.routes.embed import MESH_PROBLEMS
+from core.api import CapacityReport
+
+router = APIRouter(route_class=StrictFormRoute, tags=["watermark"])
+
+
+@router.post("/v1/capacity", summary="Measure watermark capacity", response_model=CapacityReport,
+             responses=problem_responses(*MESH_PROBLEMS))
+async def capacity(task: CapacityForm, pool: PoolDep) -> Response:
+    """Carriers, the largest payload that fits once, and the expected distortion at `strength`."""
+    report: CapacityReport = await pool.run(task)
+    return as_response(json_result(report))

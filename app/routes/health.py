@@ -1,0 +1,38 @@
+"""Liveness, readiness and metrics: open even when API keys are required."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request
+from fastapi.responses import PlainTextResponse
+
+from app.problems import NOT_READY, ProblemError, problem_responses
+from app.workers.pool import WorkerPool
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/healthz", summary="Liveness")
+async def healthz() -> dict[str, str]:
+    """200 while the process serves requests (it does not look at the workers)."""
+    return {"status": "ok"}
+
+
+@router.get("/readyz", summary="Readiness", responses=problem_responses(NOT_READY))
+async def readyz(request: Request) -> dict[str, int | str]:
+    """200 when at least one worker process is alive; 503 `not-ready` otherwise."""
+    pool: WorkerPool | None = getattr(request.app.state, "pool", None)
+    live = pool.live_workers() if pool is not None else []
+    if pool is None or not live:
+        raise ProblemError(NOT_READY, "no live worker process", headers={"Retry-After": "1"})
+    return {"status": "ready", "workers": len(live), "queued": pool.pending - pool.running,
+            "running": pool.running}
+
+
+@router.get("/metrics", summary="Prometheus metrics", response_class=PlainTextResponse,
+            responses={200: {"content": {"text/plain; version=0.0.4": {}}}})
+async def metrics(request: Request) -> PlainTextResponse:
+    state = request.app.state
+    runner = getattr(state, "runner", None)
+    jobs = await runner.store.count() if runner is not None else {}
+    text = state.metrics.render(getattr(state, "pool", None), jobs)
+    return PlainTextResponse(text, media_type="text/plain; version=0.0.4; charset=utf-8")

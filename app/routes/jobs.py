@@ -1,0 +1,136 @@
+"""``/v1/jobs``: the same work as ``/v1/embed`` and ``/v1/detect``, in the background.
+
+A job is ``queued``, then ``running`` (with ``progress`` relayed from the worker), then
+``succeeded``, ``failed`` (with the problem it would have answered) or ``cancelled``.  Finished
+jobs and their results are kept for ``job_result_ttl_seconds``, then forgotten (404).
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any, Literal
+
+from fastapi import APIRouter, Request, Response
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, Field
+
+from app.deps import RunnerDep, StoreDep
+from app.forms import DetectForm, EmbedForm, StrictFormRoute
+from app.jobs import Job, JobStore
+from app.logs import log_task
+from app.problems import (
+    JOB_FAILED,
+    JOB_NOT_READY,
+    NOT_FOUND,
+    TOO_LITTLE_CAPACITY,
+    UNAUTHORIZED,
+    ProblemError,
+    problem_responses,
+)
+from app.results import as_response, embed_openapi_response, embedded_result, json_result
+from app.routes.embed import MESH_PROBLEMS
+
+router = APIRouter(route_class=StrictFormRoute, tags=["jobs"])
+
+
+class JobStatus(BaseModel):
+    id: str
+    kind: Literal["embed", "detect"]
+    state: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    progress: float = Field(ge=0, le=1, description="Fraction done, relayed from the worker.")
+    created: datetime
+    started: datetime | None = None
+    finished: datetime | None = None
+    expires: datetime | None = Field(None, description="When the job and its result are forgotten "
+                                     "(set when it finishes).")
+    error: dict[str, Any] | None = Field(None, description="The problem, when the job failed.")
+
+    @classmethod
+    def of(cls, job: Job) -> JobStatus:
+        def ts(t: float | None) -> datetime | None:
+            return None if t is None else datetime.fromtimestamp(t, UTC)
+
+        return cls(id=job.id, kind=job.kind, state=job.state, progress=job.progress,
+                   created=datetime.fromtimestamp(job.created, UTC), started=ts(job.started),
+                   finished=ts(job.finished), expires=ts(job.expires), error=job.error)
+
+
+def _accepted(job: Job, request: Request) -> JSONResponse:
+    location = str(request.url_for("get_job", job_id=job.id).path)
+    return JSONResponse(JobStatus.of(job).model_dump(mode="json"), status_code=202,
+                        headers={"Location": location})
+
+
+async def _job(store: JobStore, job_id: str) -> Job:
+    job = await store.get(job_id)
+    if job is None:
+        raise ProblemError(NOT_FOUND, "no such job (unknown, deleted or expired)")
+    return job
+
+
+_CREATE: dict[int | str, dict[str, Any]] = {202: {
+    "model": JobStatus, "description": "Accepted; poll the `Location`.",
+    "headers": {"Location": {"schema": {"type": "string"}, "description": "/v1/jobs/{id}"}},
+}}
+_KNOWN: dict[int | str, dict[str, Any]] = problem_responses(NOT_FOUND, UNAUTHORIZED)
+
+
+@router.post("/v1/jobs/embed", summary="Start an embedding job", status_code=202, response_model=JobStatus,
+             responses={**_CREATE, **problem_responses(*MESH_PROBLEMS, TOO_LITTLE_CAPACITY)})
+async def create_embed_job(task: EmbedForm, runner: RunnerDep, request: Request) -> JSONResponse:
+    """Validate the form now, run the embedding in the background; the result has the same body
+    and headers as `POST /v1/embed`."""
+    job = await runner.submit("embed", task, lambda value: embedded_result(value, task.filename))
+    log_task(request, task, job=job.id)
+    return _accepted(job, request)
+
+
+@router.post("/v1/jobs/detect", summary="Start a detection job", status_code=202, response_model=JobStatus,
+             responses={**_CREATE, **problem_responses(*MESH_PROBLEMS)})
+async def create_detect_job(task: DetectForm, runner: RunnerDep, request: Request) -> JSONResponse:
+    """Run a detection in the background; the result is the JSON of `POST /v1/detect`."""
+    job = await runner.submit("detect", task, json_result)
+    log_task(request, task, job=job.id)
+    return _accepted(job, request)
+
+
+@router.get("/v1/jobs/{job_id}", summary="Job status", response_model=JobStatus, responses=_KNOWN)
+async def get_job(job_id: str, store: StoreDep) -> JobStatus:
+    return JobStatus.of(await _job(store, job_id))
+
+
+@router.get(
+    "/v1/jobs/{job_id}/result", summary="Job result", response_class=Response,
+    responses={**embed_openapi_response(
+        "Embed jobs: the watermarked mesh with the `X-MeshMark-*` headers of `POST /v1/embed`. "
+        "Detect jobs: the JSON of `POST /v1/detect`.",
+        {"application/json": {"schema": {"$ref": "#/components/schemas/DetectResult"}}}),
+        **problem_responses(NOT_FOUND, JOB_NOT_READY, JOB_FAILED, UNAUTHORIZED)},
+)
+async def get_job_result(job_id: str, store: StoreDep) -> Response:
+    """409 `job-not-ready` (with `Retry-After`) until the job finishes; 409 `job-failed` (with the
+    job's problem as `error`) when it failed or was cancelled."""
+    job = await _job(store, job_id)
+    if job.state in ("queued", "running"):
+        raise ProblemError(JOB_NOT_READY, f"the job is {job.state}", headers={"Retry-After": "1"},
+                           state=job.state, progress=job.progress)
+    if job.result is None:
+        detail = "the job failed (see error)" if job.state == "failed" else "the job was cancelled"
+        raise ProblemError(JOB_FAILED, detail, state=job.state, error=job.error)
+    return as_response(job.result)
+
+
+@router.delete(
+    "/v1/jobs/{job_id}", summary="Cancel or delete a job", response_model=JobStatus,
+    responses={200: {"description": "The job was queued or running: it is now `cancelled` (kept until it "
+                                    "expires)."},
+               204: {"description": "The job had finished: it and its result are deleted."}, **_KNOWN},
+)
+async def delete_job(job_id: str, runner: RunnerDep, store: StoreDep) -> Any:
+    job = await _job(store, job_id)
+    if job.done:
+        await store.delete(job_id)
+        return Response(status_code=204)
+    cancelled = await runner.cancel(job_id)
+    return JobStatus.of(cancelled or job)
+

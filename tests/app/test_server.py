@@ -1,0 +1,122 @@
+"""The real server, started the way the README says (``meshmark serve``), over a real socket."""
+
+from __future__ import annotations
+
+import http.client
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.app.conftest import KEY, shared_mesh, wait_for
+
+MESHMARK = Path(sys.executable).parent / "meshmark"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    if not MESHMARK.exists():
+        pytest.skip(f"{MESHMARK} not installed (pip install -e .)")
+    port = _free_port()
+    env = {**os.environ, "MESHMARK_WORKERS": "1", "MESHMARK_LOG_LEVEL": "warning"}
+    log = tmp_path_factory.mktemp("server") / "server.log"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen([str(MESHMARK), "serve", "--port", str(port)], env=env, stdout=out,
+                                stderr=subprocess.STDOUT)
+    base = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            if httpx.get(f"{base}/healthz", timeout=1).status_code == 200:
+                break
+        except httpx.TransportError:
+            pass
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            proc.wait()
+            pytest.fail(f"server did not start: {log.read_text(errors='replace')}")
+        time.sleep(0.1)
+    yield base, port, proc
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)
+
+
+def test_round_trip_over_a_socket(server):
+    base, _, _ = server
+    spot = shared_mesh("spot.obj")
+    with httpx.Client(base_url=base, timeout=60) as http:
+        assert http.get("/readyz").json()["workers"] == 1
+        marked = http.post("/v1/embed", files={"mesh": ("spot.obj", spot)}, data={"key": KEY})
+        assert marked.status_code == 200
+        assert marked.headers["content-disposition"] == 'attachment; filename="spot.marked.obj"'
+        found = http.post("/v1/detect", files={"mesh": ("spot.marked.obj", marked.content)},
+                          headers={"X-Watermark-Key": KEY}).json()
+        assert found["detected"] is True
+        assert "meshmark_workers_live 1" in http.get("/metrics").text
+
+
+def test_key_header_must_be_utf8(server):
+    _, port, _ = server
+    body = (b"--b\r\nContent-Disposition: form-data; name=\"mesh\"; filename=\"s.obj\"\r\n\r\n"
+            b"v 0 0 0\r\n--b--\r\n")
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+    try:
+        conn.putrequest("POST", "/v1/embed")
+        conn.putheader("Content-Type", "multipart/form-data; boundary=b")
+        conn.putheader("Content-Length", str(len(body)))
+        conn.putheader("X-Watermark-Key", b"caf\xe9")  # Latin-1 bytes, not UTF-8
+        conn.endheaders(body)
+        response = conn.getresponse()
+        assert response.status == 422
+        assert b"X-Watermark-Key header must be UTF-8" in response.read()
+    finally:
+        conn.close()
+
+
+def test_sigterm_stops_server_and_workers(server):
+    base, _, proc = server
+    assert httpx.get(f"{base}/readyz").status_code == 200
+    pids = _worker_pids(proc.pid)
+    assert pids  # the fork server and the worker
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=30) in (0, -signal.SIGTERM)  # uvicorn re-raises the signal after shutdown
+    # the fork server and multiprocessing's resource tracker notice their parent is gone and exit
+    wait_for(lambda: not [pid for pid in pids if _state(pid) not in ("gone", "Z")], timeout=10)
+
+
+def _worker_pids(parent: int) -> list[int]:
+    """Descendants of ``parent`` (the fork server and the workers), from /proc."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(entry.name))
+    found, todo = [], [parent]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            found.append(child)
+            todo.append(child)
+    return found
+
+
+def _state(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return "gone"
