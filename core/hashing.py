@@ -51,6 +51,11 @@ def derive_bytes(key: str | bytes, purpose: str, n: int) -> bytes:
 
 def segment_sum_u64(values: np.ndarray, indptr: np.ndarray) -> np.ndarray:
     """Sum of uint64 ``values`` over CSR segments (modulo 2**64; empty segments give 0)."""
+    n = len(indptr) - 1
+    out = np.zeros(n, np.uint64)
+    if len(values) == 0:
+        return out
+    nonempty = indptr[1:] > indptr[:-1]
     with np.errstate(over="ignore"):
-        cs = np.concatenate([np.zeros(1, np.uint64), np.cumsum(values, dtype=np.uint64)])
-        return cs[indptr[1:]] - cs[indptr[:-1]]
+        out[nonempty] = np.add.reduceat(values, indptr[:-1][nonempty])
+    return out

@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from core.api import (
     DEFAULT_METHOD,
@@ -84,20 +83,40 @@ def _reads_back(check: DetectResult, bits: np.ndarray | None) -> bool:
 
 
 def _distortion(doc: MeshDocument, new: list[np.ndarray]) -> tuple[int, float, float, float]:
+    """Vertices moved, RMS and max displacement, and symmetric vertex Hausdorff distance, all
+    relative to the bounding-box diagonal of the input.
+
+    Hausdorff: for each moved vertex, the distance from its new position to the nearest old vertex
+    among itself and its 1-ring, and from its old position to the nearest new one (unmoved
+    vertices are in both sets).  Moves are capped well below an edge, so the nearest vertex is in
+    that set.
+    """
     old_all = np.concatenate([p.vertices for p in doc.parts])
-    new_all = np.concatenate(new)
     diag = bbox_diagonal(old_all) or 1.0
-    d = np.linalg.norm(new_all - old_all, axis=1)
-    moved = d > 0
-    rms = float(np.sqrt((d**2).mean())) / diag if d.size else 0.0
-    mx = float(d.max()) / diag if d.size else 0.0
+    d2 = np.zeros(0)
     haus = 0.0
-    if moved.any():
-        # vertex-set Hausdorff: unmoved vertices are in both sets, so only moved ones count
-        h1 = cKDTree(old_all).query(new_all[moved])[0].max()
-        h2 = cKDTree(new_all).query(old_all[moved])[0].max()
-        haus = float(max(h1, h2)) / diag
-    return int(moved.sum()), rms, mx, haus
+    for p, v in zip(doc.parts, new, strict=True):
+        d = np.linalg.norm(v - p.vertices, axis=1)
+        d2 = np.concatenate([d2, d])
+        moved = np.flatnonzero(d > 0)
+        if moved.size == 0 or len(p.faces) == 0:
+            haus = max(haus, float(d.max()) if d.size else 0.0)
+            continue
+        adj = adjacency(p.faces, len(p.vertices))
+        deg = adj.degree[moved]
+        rows = np.repeat(np.arange(moved.size), deg)
+        nb = adj.indices[np.repeat(adj.indptr[moved], deg) + np.arange(deg.sum())
+                         - np.repeat(np.cumsum(deg) - deg, deg)]
+        to_old = np.full(moved.size, np.inf)
+        to_new = np.full(moved.size, np.inf)
+        np.minimum.at(to_old, rows, np.linalg.norm(v[moved][rows] - p.vertices[nb], axis=1))
+        np.minimum.at(to_new, rows, np.linalg.norm(p.vertices[moved][rows] - v[nb], axis=1))
+        to_old = np.minimum(to_old, d[moved])
+        to_new = np.minimum(to_new, d[moved])
+        haus = max(haus, float(to_old.max()), float(to_new.max()))
+    rms = float(np.sqrt((d2**2).mean())) / diag if d2.size else 0.0
+    mx = float(d2.max()) / diag if d2.size else 0.0
+    return int((d2 > 0).sum()), rms, mx, haus / diag
 
 
 class _ArrayDoc(MeshDocument):
