@@ -76,7 +76,11 @@ def _votes(analyses: list[Analysis], values: list[np.ndarray], key: str | bytes,
     if not slots or sum(len(x) for x in slots) == 0:
         return np.zeros(0, np.int64), np.zeros(0)
     s = np.concatenate(slots)
-    return s, np.concatenate(values) * (1.0 - 2.0 * mask[s])
+    # whitening balances 0s and 1s, so the mean raw vote is a bias every carrier shares (noise
+    # pushes every carrier outwards, smoothing inwards): remove it before de-whitening, or it
+    # turns into agreement within slots that looks like signal
+    u = np.concatenate(values)
+    return s, (u - u.mean()) * (1.0 - 2.0 * mask[s])
 
 
 def _decode(slots: np.ndarray, votes: np.ndarray, L: int) -> tuple[np.ndarray, np.ndarray]:
@@ -87,11 +91,26 @@ def _decode(slots: np.ndarray, votes: np.ndarray, L: int) -> tuple[np.ndarray, n
 
 def _posterior(slots: np.ndarray, votes: np.ndarray, sums: np.ndarray,
                bits: np.ndarray) -> tuple[Decoded, float]:
-    """Calibrated decoding: carrier error rate ``p`` estimated against the decoded codeword,
-    then exact per-bit posteriors with LLR ``log((1 - p) / p)`` per vote."""
-    cw = hamming_encode(bits)
-    disagree = float(((1.0 - 2.0 * cw[slots]) * votes < 0).sum()) if len(slots) else 0.0
-    p = (disagree + 1.0) / (len(slots) + 2.0)
+    """Calibrated decoding: exact per-bit posteriors with LLR ``log((1 - p) / p)`` per vote.
+
+    The carrier error rate ``p`` comes from the votes' agreement *within* slots, which does not
+    depend on the decoded codeword: for votes of mean ``m`` (``m = 1 - 2p`` for hard votes),
+    ``E[S^2 - sum v^2] = n (n - 1) m^2`` per slot (method of moments).  Fitting ``p`` against the
+    decoded codeword instead makes a wrong decoding look reliable.  With about one vote per slot
+    (small meshes) there is no within-slot agreement to measure and the codeword fit is used.
+    """
+    L = len(sums)
+    n = np.bincount(slots, minlength=L).astype(np.float64)
+    sq = np.bincount(slots, votes * votes, minlength=L)
+    pairs = float((n * (n - 1)).sum())
+    if pairs >= 50:
+        m2 = max(float((sums * sums - sq).sum()) / pairs, 0.0)
+        m = min(np.sqrt(m2), 1.0)
+        p = (1.0 - m) / 2.0 + 0.5 / (len(slots) + 2.0)
+    else:
+        cw = hamming_encode(bits)
+        disagree = float(((1.0 - 2.0 * cw[slots]) * votes < 0).sum()) if len(slots) else 0.0
+        p = (disagree + 1.0) / (len(slots) + 2.0)
     return soft_decode(log_odds(p) * sums), p
 
 

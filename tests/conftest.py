@@ -13,6 +13,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 MESHES_DIR = (ROOT / os.environ.get("MESHMARK_TEST_MESHES", "../shared/meshes")).resolve()
+if "MESHMARK_TEST_MESHES" not in os.environ and not MESHES_DIR.is_dir():
+    # a clone outside the workspace (CI's clean clone): the workspace's shared folder
+    MESHES_DIR = Path("/work/shared/meshes")
 
 SHARED_MESHES = [
     "teapot.stl", "monkey.glb", "sink.3ds", "spot.obj", "decimated-max.obj", "fandisk.off",
