@@ -202,9 +202,10 @@ def _detect_method(method: str, analyses: list[Analysis], key: str | bytes, expe
                     false_positive_probability=fpp if ok else 1.0,
                     copies=round(carriers / L, 3), carriers=carriers, crc_ok=crc_ok, method=method,
                     key_derived=False, bit_errors=errors, p_value=p_value, parts=parts)
-                if ok:
+                if ok and (expected is None or (crc_ok and errors == 0)):
                     return (p_err, res), None
-                near = res
+                if near is None or (near.bit_errors or 0) > (errors or 0) or (ok and not near.detected):
+                    near = res
         L = codeword_length(None)
         if expected is None and not _same_as_auto(analyses, L, ranked):
             slots, votes = _votes(analyses, values[adaptive], key, L, ranked)
@@ -219,4 +220,7 @@ def _detect_method(method: str, analyses: list[Analysis], key: str | bytes, expe
                         false_positive_probability=fpp_total, copies=round(carriers / L, 3),
                         carriers=carriers, crc_ok=False, method=method, key_derived=True,
                         bit_errors=errors, p_value=binomial_tail(errors, KEY_CODE_BITS), parts=parts)), None
+    if near is not None and near.detected:
+        # informed detection accepted by its p-value but without an exact CRC match
+        return (1.0, near), None
     return None, near

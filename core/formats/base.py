@@ -73,9 +73,11 @@ def weld(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.n
     Returns
     -------
     vertices : (n, 3) float64
-        Unique positions, in order of first appearance among the slots.
+        Unique positions, in order of first appearance among the slots; then, kept apart, the
+        slots that share a position with another slot *of the same triangle* (neighbours made to
+        coincide by rounding, not copies of one vertex).
     faces : (m', 3) int64
-        Triangles into ``vertices`` with degenerate (repeated-vertex) triangles removed.
+        Triangles into ``vertices`` with degenerate (repeated-slot) triangles removed.
     slot_to_vertex : (k,) int64
         Welded index of every slot.
     """
@@ -95,6 +97,20 @@ def weld(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.n
     if tri.size and (tri.min() < 0 or tri.max() >= len(pos)):
         raise MeshFormatError("face index out of range")
     faces = slot_to_vertex[tri] if tri.size else np.zeros((0, 3), np.int64)
+    # Distinct slots of one face that share a position were not split copies of one vertex (UV
+    # seams, STL soups) but neighbours that a rounding (quantisation, float32) made coincide:
+    # welding them would collapse an edge and change the connectivity.  Keep such slots apart.
+    clash = np.zeros(tri.shape, bool)
+    for a, b in ((0, 1), (1, 2), (0, 2)):
+        same = (faces[:, a] == faces[:, b]) & (tri[:, a] != tri[:, b])
+        clash[:, a] |= same
+        clash[:, b] |= same
+    if clash.any():
+        split = np.unique(tri[clash])
+        slot_to_vertex = slot_to_vertex.copy()
+        slot_to_vertex[split] = len(vertices) + np.arange(split.size)
+        vertices = np.concatenate([vertices, pos[split]])
+        faces = slot_to_vertex[tri]
     keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     return vertices, faces[keep], slot_to_vertex
 

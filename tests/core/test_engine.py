@@ -156,3 +156,22 @@ def test_confidence_is_calibrated_under_noise() -> None:
     hi = conf_a >= 0.9
     assert hi.sum() > 50
     assert right_a[hi].mean() >= 0.85
+
+
+def test_rounding_that_merges_neighbours_keeps_connectivity() -> None:
+    """Neighbours made to coincide by coarse quantisation are not welded (an edge would collapse
+    and every label around it change); copies of one vertex (seams, STL soups) still are."""
+    from core.formats import weld
+
+    v, f = irregular_sphere(2000, 5)
+    step = 0.05
+    q = np.round(v / step) * step
+    wv, wf, slots = weld(q, f)
+    assert len(wf) == len(f)  # no face collapsed
+    # a soup of the same mesh (3 slots per face) welds back to shared vertices
+    soup = q[f].reshape(-1, 3)
+    sv, sf, _ = weld(soup, np.arange(len(soup)).reshape(-1, 3))
+    assert len(sf) == len(f) and len(sv) < len(soup) / 2
+    marked, _ = embed_mesh(v, f, "quant", payload="1" * 24)
+    res = detect_mesh([(np.round(marked / 1e-3) * 1e-3, f)], "quant")
+    assert res.detected and res.payload == "1" * 24
