@@ -69,27 +69,37 @@ def _soft_values(analyses: list[Analysis], adaptive: bool) -> list[np.ndarray]:
 
 
 def _votes(analyses: list[Analysis], values: list[np.ndarray], key: str | bytes, L: int,
-           ranked: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Per-carrier slot and de-whitened vote for codeword length L."""
-    mask = whitening(key, L)
-    slots = assign_slots_all(analyses, L, ranked)
-    if not slots or sum(len(x) for x in slots) == 0:
-        return np.zeros(0, np.int64), np.zeros(0)
-    s = np.concatenate(slots)
+           ranked: bool | None = None, cache: dict | None = None
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-carrier slot and centred raw vote, and the per-slot de-whitening sign, for codeword
+    length L (``cache``: slots and centred votes, shared by the candidates of one method).  The
+    de-whitened vote of a carrier is ``raw * sign[slot]``."""
+    cache = {} if cache is None else cache
+    key_slots = ("slots", L, ranked)
+    if key_slots not in cache:
+        cache[key_slots] = np.concatenate(assign_slots_all(analyses, L, ranked, cache)) if analyses \
+            else np.zeros(0, np.int64)
+    s = cache[key_slots]
+    if len(s) == 0:
+        return np.zeros(0, np.int64), np.zeros(0), np.ones(L)
     # whitening balances 0s and 1s, so the mean raw vote is a bias every carrier shares (noise
     # pushes every carrier outwards, smoothing inwards): remove it before de-whitening, or it
     # turns into agreement within slots that looks like signal
-    u = np.concatenate(values)
-    return s, (u - u.mean()) * (1.0 - 2.0 * mask[s])
+    key_u = ("centred", id(values))
+    if key_u not in cache:
+        u = np.concatenate(values)
+        cache[key_u] = u - u.mean()
+    return s, cache[key_u], 1.0 - 2.0 * whitening(key, L)
 
 
-def _decode(slots: np.ndarray, votes: np.ndarray, L: int) -> tuple[np.ndarray, np.ndarray]:
-    """ML message bits from the per-slot vote sums (the LLR scale does not change the argmax)."""
-    sums = np.bincount(slots, votes, minlength=L)
+def _decode(slots: np.ndarray, raw: np.ndarray, sign: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ML message bits from the per-slot de-whitened vote sums (the LLR scale does not change the
+    argmax)."""
+    sums = np.bincount(slots, raw, minlength=len(sign)) * sign
     return ml_bits(sums), sums
 
 
-def _posterior(slots: np.ndarray, votes: np.ndarray, sums: np.ndarray,
+def _posterior(slots: np.ndarray, raw: np.ndarray, sign: np.ndarray, sums: np.ndarray,
                bits: np.ndarray) -> tuple[Decoded, float]:
     """Calibrated decoding: exact per-bit posteriors with LLR ``log((1 - p) / p)`` per vote.
 
@@ -100,6 +110,7 @@ def _posterior(slots: np.ndarray, votes: np.ndarray, sums: np.ndarray,
     (small meshes) there is no within-slot agreement to measure and the codeword fit is used.
     """
     L = len(sums)
+    votes = raw * sign[slots]
     n = np.bincount(slots, minlength=L).astype(np.float64)
     sq = np.bincount(slots, votes * votes, minlength=L)
     pairs = float((n * (n - 1)).sum())
@@ -172,14 +183,15 @@ def _detect_method(method: str, analyses: list[Analysis], key: str | bytes, expe
     parts = [{"carriers": int(len(a.carriers)), "regular_fallback": bool(a.regular)} for a in analyses]
     near: DetectResult | None = None
     values = {adaptive: _soft_values(analyses, adaptive) for adaptive in (False, True)}
+    cache: dict = {}
     for adaptive, ranked in VARIANTS:
         for L, ns in by_L.items():
             if _same_as_auto(analyses, L, ranked):
                 continue
-            slots, votes = _votes(analyses, values[adaptive], key, L, ranked)
+            slots, raw, sign = _votes(analyses, values[adaptive], key, L, ranked, cache)
             if len(slots) == 0:
                 continue
-            msg, sums = _decode(slots, votes, L)
+            msg, sums = _decode(slots, raw, sign)
             for n in ns:
                 payload, crc, pad = msg[:n], msg[n:n + CRC_BITS], msg[n + CRC_BITS:]
                 crc_ok = bool(np.array_equal(crc, crc_bits(payload)) and not pad.any())
@@ -195,7 +207,7 @@ def _detect_method(method: str, analyses: list[Analysis], key: str | bytes, expe
                 if not ok and (expected is None or (near is not None and near.bit_errors is not None
                                                     and errors is not None and near.bit_errors <= errors)):
                     continue
-                dec, p_err = _posterior(slots, votes, sums, msg)
+                dec, p_err = _posterior(slots, raw, sign, sums, msg)
                 res = DetectResult(
                     detected=ok, payload=bits_to_str(payload),
                     bit_confidence=[round(float(c), 6) for c in dec.confidence[:n]],
@@ -208,12 +220,12 @@ def _detect_method(method: str, analyses: list[Analysis], key: str | bytes, expe
                     near = res
         L = codeword_length(None)
         if expected is None and not _same_as_auto(analyses, L, ranked):
-            slots, votes = _votes(analyses, values[adaptive], key, L, ranked)
+            slots, raw, sign = _votes(analyses, values[adaptive], key, L, ranked, cache)
             if len(slots):
-                msg, sums = _decode(slots, votes, L)
+                msg, sums = _decode(slots, raw, sign)
                 errors = int((msg[:KEY_CODE_BITS] != code).sum())
                 if errors <= KEY_CODE_MAX_ERRORS:
-                    dec, p_err = _posterior(slots, votes, sums, msg)
+                    dec, p_err = _posterior(slots, raw, sign, sums, msg)
                     return (p_err, DetectResult(
                         detected=True, payload=bits_to_str(dec.bits[:KEY_CODE_BITS]),
                         bit_confidence=[round(float(c), 6) for c in dec.confidence[:KEY_CODE_BITS]],

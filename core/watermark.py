@@ -286,7 +286,8 @@ HASHED_FROM = 4
 OWN_RANKING_FROM = 1.5
 
 
-def assign_slots_all(analyses: list[Analysis], L: int, ranked: bool | None = None) -> list[np.ndarray]:
+def assign_slots_all(analyses: list[Analysis], L: int, ranked: bool | None = None,
+                     cache: dict | None = None) -> list[np.ndarray]:
     """Codeword slot of every carrier of every part.
 
     Many carriers (>= ``HASHED_FROM`` per slot over the file): ``slot_hash mod L``, purely
@@ -294,26 +295,36 @@ def assign_slots_all(analyses: list[Analysis], L: int, ranked: bool | None = Non
     of all parts ranked together by ``slot_hash`` take the slots in turn (dense ranks, so equal
     hashes share a slot; the rank does not depend on the parts' order), which covers every slot
     as soon as there are ``L`` carriers, as the paper's small models need (a part with
-    ``OWN_RANKING_FROM x L`` carriers is ranked alone, so that it decodes when extracted).  ``ranked=None``
-    chooses by the number of carriers (the embedder's choice); the detector also tries the other,
-    since cropping changes that number.
+    ``OWN_RANKING_FROM x L`` distinct labels is ranked alone, so that it decodes when extracted).
+    ``ranked=None`` chooses by the number of carriers (the embedder's choice); the detector also
+    tries the other, since cropping changes that number.  ``cache``: a dict reused across calls
+    on the same analyses (ranks do not depend on ``L``).
     """
+    cache = {} if cache is None else cache
     total = sum(len(a.carriers) for a in analyses)
     if ranked is None:
         ranked = total < HASHED_FROM * L
     if not ranked:
         return [(a.slot_hash % np.uint64(L)).astype(np.int64) for a in analyses]
+    if "distinct" not in cache:
+        cache["distinct"] = [np.unique(a.slot_hash).size for a in analyses]
+    distinct = cache["distinct"]
     out = [np.zeros(0, np.int64) for _ in analyses]
     # a part that can hold a copy by itself is ranked alone (so it decodes when extracted);
     # the small ones are ranked together
     small = []
     for k, a in enumerate(analyses):
-        if own_copy(a, L):
-            out[k] = _dense_rank(a.slot_hash) % L
+        if len(a.carriers) >= OWN_RANKING_FROM * L and distinct[k] >= OWN_RANKING_FROM * L:
+            if ("own", k) not in cache:
+                cache[("own", k)] = _dense_rank(a.slot_hash)
+            out[k] = cache[("own", k)] % L
         elif len(a.carriers):
             small.append(k)
     if small:
-        slots = _dense_rank(np.concatenate([analyses[k].slot_hash for k in small])) % L
+        group = ("joint", tuple(small))
+        if group not in cache:
+            cache[group] = _dense_rank(np.concatenate([analyses[k].slot_hash for k in small]))
+        slots = cache[group] % L
         for k, part in zip(small, np.split(slots, np.cumsum([len(analyses[k].carriers) for k in small])[:-1]),
                            strict=True):
             out[k] = part
