@@ -72,6 +72,7 @@ class CapacityReport:
     codeword_bits_default: int       # 56: the key-derived code with Hamming(7,4)
     expected_rms_displacement: float
     expected_max_displacement: float
+    payload_bits_by_copies: dict[str, int] = field(default_factory=dict)  # copies -> largest payload
     parts: list[dict[str, Any]] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:

@@ -254,6 +254,14 @@ def _detect_doc(doc: MeshDocument, key: str | bytes, payload: str | None, method
     return detect_analyses(_analyses(doc, parts, key, methods), key, bits)
 
 
+def _largest_payload(carriers: float) -> int:
+    """Largest payload (bits) whose codeword fits in ``carriers`` carriers (0 if none)."""
+    for n in range(MAX_PAYLOAD_BITS, 0, -1):
+        if codeword_length(n) <= carriers:
+            return n
+    return 0
+
+
 def capacity_file(data: bytes, *, filename: str | None = None, method: str = DEFAULT_METHOD,
                   strength: float | None = None, limits=None) -> CapacityReport:
     _check_method(method)
@@ -273,15 +281,12 @@ def capacity_file(data: bytes, *, filename: str | None = None, method: str = DEF
         carriers += stats[k].carriers
         info.append({"name": doc.parts[i].name, "vertices": int(len(doc.parts[i].vertices)),
                      "carriers": stats[k].carriers})
-    max_bits = 0
-    for n in range(MAX_PAYLOAD_BITS, 0, -1):
-        if codeword_length(n) * CAPACITY_MARGIN <= carriers:
-            max_bits = n
-            break
+    max_bits = _largest_payload(carriers / CAPACITY_MARGIN)
+    by_copies = {str(c): _largest_payload(carriers / c) for c in (1, 2, 4, 8, 16)}
     _, rms, mx, _ = _distortion(doc, new)
     return CapacityReport(method=method, strength=s, carriers=carriers, max_payload_bits=max_bits,
                           copies_of_default=round(carriers / codeword_length(None), 3),
-                          codeword_bits_default=codeword_length(None),
+                          codeword_bits_default=codeword_length(None), payload_bits_by_copies=by_copies,
                           expected_rms_displacement=rms, expected_max_displacement=mx, parts=info)
 
 
