@@ -145,8 +145,12 @@ def target_positions(method: str, a: Analysis, v: np.ndarray, bits: np.ndarray, 
         rt = (y[:, 1:] ** 2 / a.lam[:, 1:]).sum(axis=1)
         fits = rho_t**2 >= rt
         y0 = sgn * np.sqrt(np.maximum(rho_t**2 - rt, 0.0) * l1)
-        inside = closest_on_ellipsoid(y, rho_t[:, None] * np.sqrt(a.lam))
-        y = np.where(fits[:, None], np.column_stack([y0, y[:, 1:]]), inside)
+        out = y.copy()
+        out[fits, 0] = y0[fits]
+        far = ~fits
+        if far.any():
+            out[far] = closest_on_ellipsoid(y[far], rho_t[far, None] * np.sqrt(a.lam[far]))
+        y = out
     new = a.mu + np.einsum("kij,kj->ki", a.axes, y)
     return np.where(need[:, None], new, v)
 
@@ -165,15 +169,22 @@ def closest_on_ellipsoid(y: np.ndarray, axes: np.ndarray, iterations: int = 40) 
     ``sum (y_j a_j / (a_j^2 + t))^2 = 1``, found by Newton's method from ``t = 0`` (the function
     is convex and decreasing there, so the iterates increase monotonically to the root).
     """
-    a2 = np.maximum(axes, 1e-300) ** 2
+    # an ellipsoid shrunk to its centre (all semi-axes 0) has the centre as closest point; Newton
+    # would divide 0 by 0 there
+    collapsed = ~(axes.max(axis=1) > 0)
+    a2 = np.maximum(np.where(collapsed[:, None], 1.0, axes), 1e-300) ** 2
     t = np.zeros(len(y))
+    ya = y * y * a2
     for _ in range(iterations):
         d = a2 + t[:, None]
-        f = (y * y * a2 / d**2).sum(axis=1) - 1.0
-        df = -2.0 * (y * y * a2 / d**3).sum(axis=1)
+        f = (ya / d**2).sum(axis=1) - 1.0
+        df = -2.0 * (ya / d**3).sum(axis=1)
         step = np.where(df < 0, -f / np.minimum(df, -1e-300), 0.0)
         t = np.maximum(t + step, 0.0)
+        if np.all(np.abs(step) <= 1e-12 * (1.0 + t)):
+            break
     x = y * a2 / (a2 + t[:, None])
+    x[collapsed] = 0.0
     # land just inside whatever Newton left: rescale onto the ellipsoid
     r = np.sqrt((x * x / a2).sum(axis=1))
     return x / np.maximum(r, 1.0)[:, None]
