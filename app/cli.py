@@ -1,4 +1,5 @@
-"""``meshmark``: embed, detect and measure capacity on local files, or serve the HTTP API.
+"""``meshmark``: embed, detect and measure capacity on local files, serve the HTTP API, or run a
+worker of the Redis jobs backend.
 
 Exit codes: 0 success (detect: watermark found), 1 detect ran but found no watermark,
 2 usage or input error (bad arguments, unreadable file, malformed mesh...), 3 internal error.
@@ -133,6 +134,32 @@ def _serve(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _worker(args: argparse.Namespace) -> int:
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")  # before numpy loads: one BLAS thread per worker process
+    from pydantic import ValidationError
+
+    from app.config import Settings
+
+    overrides = {k: v for k, v in (("worker_concurrency", args.concurrency), ("jobs_queue", args.queue))
+                 if v is not None}
+    try:
+        settings = Settings(**overrides)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise _UsageError(f"invalid settings: {problems}") from None
+    try:
+        from app.workers.celery_app import run_worker
+    except ImportError as exc:
+        raise _UsageError(f"the Redis backend needs the 'redis' extra (pip install 'meshmark[redis]'): "
+                          f"{exc}") from None
+    try:
+        run_worker(settings)
+    except PermissionError as exc:
+        raise _UsageError(str(exc)) from None
+    return EXIT_OK
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="meshmark", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -174,6 +201,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, help="port (default: $MESHMARK_PORT or 8000)")
     p.add_argument("--workers", type=int, help="worker processes (default: $MESHMARK_WORKERS or 2)")
     p.set_defaults(run=_serve)
+
+    p = sub.add_parser("worker", help="run a Celery worker of the Redis jobs backend (settings from "
+                       "MESHMARK_* variables: MESHMARK_REDIS_URL, MESHMARK_BLOB_DIR...)")
+    p.add_argument("--concurrency", type=int,
+                   help="worker processes (default: $MESHMARK_WORKER_CONCURRENCY or the CPU count)")
+    p.add_argument("--queue", help="queue to serve (default: $MESHMARK_JOBS_QUEUE or meshmark)")
+    p.set_defaults(run=_worker)
     return parser
 
 

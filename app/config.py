@@ -5,7 +5,9 @@ Every default here is also in the README's limits table; change both together.
 
 from __future__ import annotations
 
-from typing import Annotated
+import tempfile
+from pathlib import Path
+from typing import Annotated, Literal
 
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -44,6 +46,13 @@ class Settings(BaseSettings):
     # jobs
     job_result_ttl_seconds: float = Field(default=3600.0, gt=0)  # finished jobs are kept this long
     max_stored_jobs: int = Field(default=256, ge=1)  # jobs in the store, finished or not
+
+    # where jobs run: "memory" (this process's pool) or "redis" (Celery workers: `meshmark worker`)
+    jobs_backend: Literal["memory", "redis"] = "memory"
+    redis_url: str = Field(default="redis://127.0.0.1:6379/0", pattern=r"^(rediss?|unix)://")
+    jobs_queue: str = Field(default="meshmark", pattern=r"^[A-Za-z0-9_.-]{1,64}$")  # + Redis key prefix
+    blob_dir: Path = Field(default_factory=lambda: Path(tempfile.gettempdir()) / "meshmark-blobs")
+    worker_concurrency: int | None = Field(default=None, ge=1)  # `meshmark worker` processes; None = CPUs
 
     # security: caller API keys (comma-separated; empty = no authentication), and the HMAC secret of
     # the key fingerprints in logs (None = random per process)

@@ -9,8 +9,8 @@ from fastapi import Depends, Form, Header, Request
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
 from app.config import Settings
-from app.inputs import InputError, key_from_header, validate_key
-from app.jobs import JobRunner, JobStore
+from app.inputs import KEY_HEADER_SCHEMA, KEY_SCHEMA, InputError, key_from_header, validate_key
+from app.jobs import JobStore, Runner
 from app.problems import BAD_FORM, NOT_READY, UNAUTHORIZED, ProblemError
 from app.workers.pool import WorkerPool
 
@@ -27,20 +27,20 @@ def get_pool(request: Request) -> WorkerPool:
     return pool
 
 
-def get_runner(request: Request) -> JobRunner:
-    runner: JobRunner | None = getattr(request.app.state, "runner", None)
+def get_runner(request: Request) -> Runner:
+    runner: Runner | None = getattr(request.app.state, "runner", None)
     if runner is None:
         raise ProblemError(NOT_READY, "the job runner is not running")
     return runner
 
 
-def get_store(runner: Annotated[JobRunner, Depends(get_runner)]) -> JobStore:
+def get_store(runner: Annotated[Runner, Depends(get_runner)]) -> JobStore:
     return runner.store
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 PoolDep = Annotated[WorkerPool, Depends(get_pool)]
-RunnerDep = Annotated[JobRunner, Depends(get_runner)]
+RunnerDep = Annotated[Runner, Depends(get_runner)]
 StoreDep = Annotated[JobStore, Depends(get_store)]
 
 _bearer = HTTPBearer(auto_error=False, description="One of MESHMARK_API_KEYS (when set).")
@@ -67,10 +67,13 @@ def require_caller(
 
 
 def watermark_key(
-    key: Annotated[str | None, Form(description="Secret watermark key, 1-1024 characters "
-                                    "(or the X-Watermark-Key header).")] = None,
+    key: Annotated[str | None, Form(description="Secret watermark key, 1-1024 characters, no control "
+                                    "characters. Give it here or in the X-Watermark-Key header: "
+                                    "exactly one of the two.", json_schema_extra=KEY_SCHEMA)] = None,
     x_watermark_key: Annotated[str | None, Header(description="The watermark key, instead of the "
-                                                  "`key` form field.")] = None,
+                                                  "`key` form field: its UTF-8 bytes (the pattern "
+                                                  "reads them as Latin-1, as HTTP does).",
+                                                  json_schema_extra=KEY_HEADER_SCHEMA)] = None,
 ) -> str:
     """The watermark key from the form field or the header (exactly one of them)."""
     try:

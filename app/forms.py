@@ -1,8 +1,10 @@
 """The multipart forms of ``/v1``: strict UTF-8 text fields and one dependency per form.
 
 Starlette decodes a text field that is not valid UTF-8 as Latin-1 without a word, which would
-silently turn a mangled key into a different key.  :class:`StrictFormRoute` parses multipart
-bodies with a parser that rejects such fields instead (``bad-form``, 422).
+silently turn a mangled key into a different key, and when a field comes twice it keeps the last
+one (two keys, or two meshes, would be a silent choice).  :class:`StrictFormRoute` parses
+multipart bodies with a parser that rejects both (``bad-form``, 422), and with tight limits: one
+file, :data:`MAX_FORM_FIELDS` text fields of at most :data:`MAX_TEXT_FIELD_BYTES` each.
 """
 
 from __future__ import annotations
@@ -13,33 +15,104 @@ from typing import Annotated, Any
 from fastapi import Depends, File, Form, Request, Response, UploadFile
 from fastapi.routing import APIRoute
 from python_multipart.multipart import parse_options_header
+from starlette.background import BackgroundTask
 from starlette.datastructures import FormData
+from starlette.exceptions import HTTPException
 from starlette.formparsers import MultiPartException, MultiPartParser
+from starlette.types import Receive
 
 from app.deps import SettingsDep, WatermarkKey
-from app.inputs import InputError, validate_method, validate_payload, validate_strength
-from app.problems import BAD_FORM, ProblemError
+from app.inputs import (
+    PAYLOAD_SCHEMA,
+    STRENGTH_SCHEMA,
+    InputError,
+    validate_method,
+    validate_payload,
+    validate_strength,
+)
+from app.problems import BAD_FORM, BUSY, ProblemError, problem_response
 from app.workers.tasks import CapacityTask, DetectTask, EmbedTask
 from core.api import DEFAULT_METHOD, METHODS
 
+#: text fields of one form (key, payload, method, strength and a few unknown ones, which are ignored)
+MAX_FORM_FIELDS = 16
+#: bytes of one text field: a key is at most 1024 characters (4 KiB of UTF-8)
+MAX_TEXT_FIELD_BYTES = 64 * 1024
+#: the form fields of the routes; other names are not repeated in messages
+FIELD_NAMES = ("mesh", "key", "payload", "method", "strength")
+_FORM_LIMITS = {"max_files": 1, "max_fields": MAX_FORM_FIELDS, "max_part_size": MAX_TEXT_FIELD_BYTES}
+
+
+def _field_label(name: str) -> str:
+    return f"form field '{name}'" if name in FIELD_NAMES else "a form field"
+
 
 class _StrictUTF8Parser(MultiPartParser):
+    def __init__(self, *args: Any, fields: frozenset[str], **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._fields = fields  # the fields this route reads: those may not come twice
+        self._seen: set[str] = set()
+        self._open_parts = 0
+
+    def on_part_begin(self) -> None:
+        self._open_parts += 1
+        super().on_part_begin()
+
+    async def parse(self) -> FormData:
+        """Starlette returns what it has when the body stops inside a part (no closing boundary),
+        and leaves that part's spooled file open; this refuses such a body and closes the file."""
+        try:
+            form = await super().parse()
+        except BaseException:
+            self._close_files()
+            raise
+        if self._open_parts:
+            self._close_files()
+            raise ProblemError(BAD_FORM, "invalid multipart body: it ends inside a part "
+                               "(no closing boundary)")
+        return form
+
+    def _close_files(self) -> None:
+        for file in getattr(self, "_files_to_close_on_error", ()):
+            file.close()
+
+    def on_headers_finished(self) -> None:
+        super().on_headers_finished()
+        name = self._current_part.field_name
+        if name in self._seen and name in self._fields:  # other fields are ignored, repeated or not
+            raise ProblemError(BAD_FORM, f"{_field_label(name)} is given more than once")
+        self._seen.add(name)
+
     def on_part_end(self) -> None:
+        self._open_parts -= 1
         part = self._current_part
         if part.file is None:
             try:
                 bytes(part.data).decode("utf-8")
             except UnicodeDecodeError:
-                raise ProblemError(BAD_FORM, f"form field '{part.field_name}' is not valid UTF-8") from None
+                raise ProblemError(BAD_FORM, f"{_field_label(part.field_name)} is not valid UTF-8") from None
         super().on_part_end()
 
 
 class StrictFormRequest(Request):
+    def __init__(self, scope: Any, receive: Receive, fields: frozenset[str]) -> None:
+        super().__init__(scope, receive)
+        self.fields = fields
+
     async def form(self, **limits: Any) -> FormData:  # type: ignore[override]
+        limits = {**limits, **_FORM_LIMITS}
         content_type, _ = parse_options_header(self.headers.get("content-type", ""))
         if content_type != b"multipart/form-data":
-            return await super().form(**limits)
-        parser = _StrictUTF8Parser(self.headers, self.stream(), **limits)
+            try:
+                form = await super().form(**limits)
+            except HTTPException as exc:  # Starlette's 400 for a broken url-encoded form
+                raise ProblemError(BAD_FORM, f"invalid form body: {exc.detail}") from None
+            names = [name for name, _ in form.multi_items()]
+            for name in self.fields:
+                if names.count(name) > 1:
+                    raise ProblemError(BAD_FORM, f"{_field_label(name)} is given more than once")
+            return form
+        parser = _StrictUTF8Parser(self.headers, self.stream(), fields=self.fields, **limits)
         try:
             return await parser.parse()
         except MultiPartException as exc:
@@ -49,11 +122,62 @@ class StrictFormRequest(Request):
 class StrictFormRoute(APIRoute):
     def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
         handler = super().get_route_handler()
+        fields = _form_fields(self.dependant)
 
         async def strict_handler(request: Request) -> Response:
-            return await handler(StrictFormRequest(request.scope, request.receive))
+            refusal = self.admit(request)
+            if refusal is not None:
+                # the upload is read and dropped, not parsed: closing a socket with unread data
+                # makes the kernel reset the connection, and a client still sending could lose the
+                # answer.  On a kept-alive connection the answer goes out first; when the client
+                # asked to close, the server closes right after answering, so drop the body first.
+                response = problem_response(refusal, request)
+                if "close" in request.headers.get("connection", "").lower():
+                    await _discard_body(request.receive)
+                else:
+                    response.background = BackgroundTask(_discard_body, request.receive)
+                return response
+            return await handler(StrictFormRequest(request.scope, request.receive, fields))
 
         return strict_handler
+
+    def admit(self, request: Request) -> ProblemError | None:
+        """Called before the body is read: a problem to answer instead of parsing the upload."""
+        return None
+
+
+def _form_fields(dependant: Any) -> frozenset[str]:
+    """Names of the form fields a route reads, through all its dependencies."""
+    names: set[str] = set()
+    todo = [dependant]
+    while todo:
+        current = todo.pop()
+        names.update(field.alias for field in current.body_params)
+        todo.extend(current.dependencies)
+    return frozenset(names)
+
+
+async def _discard_body(receive: Receive) -> None:
+    try:
+        while True:
+            message = await receive()
+            if message["type"] != "http.request" or not message.get("more_body", False):
+                return
+    except Exception:  # over the body limit, or the client went away: the server closes the connection
+        return
+
+
+class PooledFormRoute(StrictFormRoute):
+    """A form route whose work goes to the worker pool: when every task slot is taken, the
+    ``busy`` answer (429) goes out before the upload is parsed, so excess load costs the server
+    little (the pool checks again, authoritatively, when the task is submitted)."""
+
+    def admit(self, request: Request) -> ProblemError | None:
+        pool = getattr(request.app.state, "pool", None)
+        if pool is not None and pool.pending >= pool.slots:
+            return ProblemError(BUSY, f"all {pool.slots} task slots are taken; retry later",
+                                headers={"Retry-After": str(pool.retry_after())})
+        return None
 
 
 def _check(value: Any, validate: Callable[..., Any], **kwargs: Any) -> Any:
@@ -66,8 +190,11 @@ def _check(value: Any, validate: Callable[..., Any], **kwargs: Any) -> Any:
 MeshFile = Annotated[UploadFile, File(description="The mesh: OBJ, PLY, STL, OFF, GLB, glTF or 3DS.")]
 Payload = Annotated[str | None, Form(description="Bitstring of 1-256 '0'/'1'. Embed: the payload "
                                      "(default: a 32-bit code derived from the key). Detect: the "
-                                     "expected payload, to get bit errors and a p-value.")]
-Strength = Annotated[float | None, Form(description="Boundary margin, > 0 (engine default if omitted).")]
+                                     "expected payload, to get bit errors and a p-value.",
+                                     json_schema_extra=PAYLOAD_SCHEMA)]
+Strength = Annotated[float | None, Form(description="Boundary margin in (0, 1], as a fraction of the local "
+                                        "neighbourhood scale (engine default 0.07 if omitted).",
+                                        json_schema_extra=STRENGTH_SCHEMA)]
 _METHOD_SCHEMA = {"enum": list(METHODS)}
 
 

@@ -15,6 +15,17 @@ from core.api import METHODS
 
 MAX_KEY_CHARS = 1024
 MAX_PAYLOAD_BITS = 256
+MAX_STRENGTH = 1.0
+#: JSON Schema of the inputs above, for the OpenAPI document (an empty field counts as not sent)
+KEY_SCHEMA = {"maxLength": MAX_KEY_CHARS, "pattern": "^[^\\u0000-\\u001f\\u007f]*$"}
+# the header as it travels: Latin-1 text whose bytes are the key's UTF-8 (one character per group)
+_UTF8_CHAR = ("(?:[\\x20-\\x7e]|[\\xc2-\\xdf][\\x80-\\xbf]|\\xe0[\\xa0-\\xbf][\\x80-\\xbf]"
+              "|[\\xe1-\\xec\\xee\\xef][\\x80-\\xbf]{2}|\\xed[\\x80-\\x9f][\\x80-\\xbf]"
+              "|\\xf0[\\x90-\\xbf][\\x80-\\xbf]{2}|[\\xf1-\\xf3][\\x80-\\xbf]{3}"
+              "|\\xf4[\\x80-\\x8f][\\x80-\\xbf]{2})")
+KEY_HEADER_SCHEMA = {"pattern": f"^{_UTF8_CHAR}{{0,{MAX_KEY_CHARS}}}$"}
+PAYLOAD_SCHEMA = {"pattern": f"^([01]{{1,{MAX_PAYLOAD_BITS}}})?$"}
+STRENGTH_SCHEMA = {"exclusiveMinimum": 0, "maximum": MAX_STRENGTH}
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 _BITS = re.compile(r"[01]+")
 
@@ -61,8 +72,8 @@ def validate_method(method: str) -> str:
 
 
 def validate_strength(strength: float | None) -> float | None:
-    if strength is not None and not (math.isfinite(strength) and strength > 0):
-        raise InputError("strength must be a finite number > 0")
+    if strength is not None and not (math.isfinite(strength) and 0 < strength <= MAX_STRENGTH):
+        raise InputError(f"strength must be a number in (0, {MAX_STRENGTH:g}]")
     return strength
 
 

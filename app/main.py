@@ -13,7 +13,7 @@ from fastapi import Depends, FastAPI
 
 from app.config import Settings
 from app.deps import require_caller
-from app.jobs import InMemoryJobStore, JobRunner
+from app.jobs.backends import make_runner
 from app.metrics import Metrics
 from app.middleware import BodyLimitMiddleware, MetricsMiddleware
 from app.problems import BAD_FORM, Problem, install_problem_handlers, problem_responses
@@ -36,11 +36,11 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     pool = WorkerPool(workers=settings.workers, slots=settings.admission_slots,
                       timeout=settings.job_timeout_seconds, memory_mb=settings.worker_memory_mb,
                       max_tasks=settings.worker_max_tasks)
+    runner = make_runner(settings, pool)
     await pool.start()
-    runner = JobRunner(InMemoryJobStore(), pool, ttl=settings.job_result_ttl_seconds,
-                       max_jobs=settings.max_stored_jobs)
     app.state.pool, app.state.runner = pool, runner
-    log.info("MeshMark ready: %d workers, %d task slots", settings.workers, settings.admission_slots)
+    log.info("MeshMark ready: %d workers, %d task slots, %s jobs backend", settings.workers,
+             settings.admission_slots, settings.jobs_backend)
     try:
         yield
     finally:
@@ -49,9 +49,24 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await pool.stop()
 
 
+def _form_fields_without_null(schemas: dict[str, Any], operation: dict[str, Any]) -> None:
+    """A multipart form cannot send ``null``: an optional field is one that may be left out, so
+    ``anyOf: [X, null]`` becomes ``X`` (FastAPI writes the former for ``X | None``)."""
+    form = operation.get("requestBody", {}).get("content", {}).get("multipart/form-data", {})
+    ref = form.get("schema", {}).get("$ref", "")
+    body = schemas.get(ref.rsplit("/", 1)[-1], {}) if ref.startswith("#/components/schemas/") else {}
+    for prop in body.get("properties", {}).values():
+        branches = prop.get("anyOf", [])
+        kept = [b for b in branches if b != {"type": "null"}]
+        if len(kept) == 1 and len(branches) == 2:
+            del prop["anyOf"]
+            prop.update(kept[0])
+
+
 def _document(schema: dict[str, Any]) -> dict[str, Any]:
     """FastAPI's document, told the truth: 422s are ``bad-form`` problems (see
-    :mod:`app.problems`) and API keys are optional (only checked when configured)."""
+    :mod:`app.problems`), form fields are never ``null`` and API keys are optional (only checked
+    when configured)."""
     schemas = schema.setdefault("components", {}).setdefault("schemas", {})
     schemas["Problem"] = Problem.model_json_schema(ref_template="#/components/schemas/{model}")
     for name in ("HTTPValidationError", "ValidationError"):
@@ -59,6 +74,7 @@ def _document(schema: dict[str, Any]) -> dict[str, Any]:
     bad_form = problem_responses(BAD_FORM)[BAD_FORM.status]
     for operations in schema.get("paths", {}).values():
         for operation in operations.values():
+            _form_fields_without_null(schemas, operation)
             response = operation.get("responses", {}).get("422")
             if response is not None and "application/problem+json" not in response.get("content", {}):
                 operation["responses"]["422"] = bad_form

@@ -8,6 +8,7 @@ worker exit codes) go to the log only.  Nothing the caller sent is echoed, the k
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass
 from http import HTTPStatus
 from typing import Any
@@ -159,6 +160,28 @@ async def _validation_handler(request: Request, exc: Exception) -> JSONResponse:
                                          errors=fields), request)
 
 
+_HTTP_METHODS = ("get", "put", "post", "delete", "options", "head", "patch", "trace")
+
+
+def _template_regex(template: str) -> str:
+    return "".join("[^/]+" if part.startswith("{") else re.escape(part)
+                   for part in re.split(r"(\{[^/{}]+\})", template))
+
+
+def _allowed_methods(request: Request) -> str | None:
+    """The methods the OpenAPI document gives for this path.  Starlette's 405 names only the
+    methods of the first route that fits the path (``GET /v1/jobs/{id}`` hides ``DELETE``).  As
+    in OpenAPI, a literal path (``/v1/jobs/detect``) wins over a template it also fits."""
+    paths: dict[str, dict[str, Any]] = request.app.openapi().get("paths", {})
+    path = request.url.path
+    item = paths.get(path)
+    if item is None:
+        item = next((candidate for template, candidate in paths.items()
+                     if "{" in template and re.fullmatch(_template_regex(template), path)), None)
+    methods = [m.upper() for m in _HTTP_METHODS if m in (item or {})]
+    return ", ".join(methods) or None
+
+
 async def _http_exception_handler(request: Request, exc: Exception) -> JSONResponse:
     """Starlette's own errors (unknown route, wrong method...): ``about:blank`` problems."""
     assert isinstance(exc, HTTPException)
@@ -166,7 +189,12 @@ async def _http_exception_handler(request: Request, exc: Exception) -> JSONRespo
     body = {"type": "about:blank", "title": status.phrase, "status": status.value,
             "detail": exc.detail if isinstance(exc.detail, str) else status.description,
             "instance": request.url.path}
-    return JSONResponse(body, status_code=status.value, headers=exc.headers, media_type=PROBLEM_MEDIA_TYPE)
+    headers = exc.headers
+    if status == HTTPStatus.METHOD_NOT_ALLOWED:
+        allowed = _allowed_methods(request)
+        if allowed:
+            headers = {**(headers or {}), "Allow": allowed}
+    return JSONResponse(body, status_code=status.value, headers=headers, media_type=PROBLEM_MEDIA_TYPE)
 
 
 async def _unhandled_handler(request: Request, exc: Exception) -> JSONResponse:

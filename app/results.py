@@ -24,6 +24,11 @@ EMBED_HEADERS: dict[str, str] = {
     "X-MeshMark-Report": "The whole embedding report as compact JSON.",
 }
 
+#: ``Content-Type`` of a watermarked mesh, one per format (the ``media_type`` of each reader's
+#: document; the README's format table lists the same)
+MESH_MEDIA_TYPES = ("model/obj", "application/x-ply", "model/stl", "application/off", "model/gltf-binary",
+                    "model/gltf+json", "application/x-3ds")
+
 _UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
 
 
@@ -69,7 +74,8 @@ def embed_openapi_response(description: str = "The watermarked mesh, in the form
                            "uploaded in.", extra_content: dict[str, Any] | None = None,
                            ) -> dict[int | str, dict[str, Any]]:
     """OpenAPI ``responses`` entry of a watermarked-mesh answer, with its documented headers."""
-    binary = {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}
+    binary = {media_type: {"schema": {"type": "string", "format": "binary"}}
+              for media_type in MESH_MEDIA_TYPES}
     headers = {"Content-Disposition": {"schema": {"type": "string"},
                                        "description": 'attachment; filename="<stem>.marked.<ext>"'}}
     headers.update({name: {"schema": {"type": "string"}, "description": text}

@@ -83,6 +83,7 @@ def parser() -> argparse.ArgumentParser:
     fz.add_argument("--timeout", type=float, default=5.0, help="seconds per case before a hang (default: 5)")
     # jobs backend suite (issue 7): needs Redis, starts Celery workers; not part of "all"
     sub.add_parser("redis", parents=[common], help="jobs through Redis + Celery vs the in-process pool")
+    sub.add_parser("http", parents=[common], help="HTTP overhead against the CLI; 1 vs 2 workers")
     return p
 
 
@@ -100,6 +101,11 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"[bench] {args.suite} done in {time.perf_counter() - t:.0f} s -> {Path(args.out) / 'formats.md'}"
         )
+        return 0
+    if args.suite == "http":
+        from bench import http_service
+
+        print(http_service.run(Path(args.out)))
         return 0
     if args.suite == "redis":
         from bench import redis_throughput

@@ -27,7 +27,7 @@ from core.detection import detect_analyses
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, MeshDocument, read_mesh
 from core.mesh import adjacency, bbox_diagonal
-from core.sync import vertex_labels
+from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, vertex_labels
 from core.watermark import TOL, Analysis, analyse_methods, embed_parts, own_copy
 
 MAX_KEY_BYTES = 4096
@@ -55,10 +55,37 @@ def _strength(strength: float | None) -> float:
     return s
 
 
+#: a face has no area when |cross| <= this x (bounding-box diagonal)^2 (collinear corners)
+ZERO_AREA = 1e-12
+
+
+def _unusable(vertices: np.ndarray, faces: np.ndarray) -> str | None:
+    """Why a welded mesh part cannot carry a watermark, or ``None`` when it can."""
+    if len(vertices) < 4:
+        return "fewer than 4 distinct vertices"
+    if len(faces) == 0:
+        return "no faces (a point cloud, or every face repeats a vertex)"
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    twice_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    if not np.any(twice_area > ZERO_AREA * bbox_diagonal(vertices) ** 2):
+        return f"all {len(faces)} faces have zero area"
+    return None
+
+
+def _no_carrier_hint(carriers: int) -> str:
+    if carriers:
+        return ""
+    return (f"; no vertex can carry a bit: a carrier needs {MIN_DEGREE} to {MAX_DEGREE} neighbours "
+            f"({MIN_BOUNDARY_DEGREE} on a boundary) in a manifold mesh, and a triangle soup (no shared "
+            "vertices) has none")
+
+
 def _usable_parts(doc: MeshDocument) -> list[int]:
-    idx = [i for i, p in enumerate(doc.parts) if len(p.faces) > 0 and len(p.vertices) >= 4]
+    reasons = {i: _unusable(p.vertices, p.faces) for i, p in enumerate(doc.parts)}
+    idx = [i for i, why in reasons.items() if why is None]
     if not idx:
-        raise DegenerateMeshError("the file has no triangle mesh with at least 4 vertices")
+        why = "; ".join(sorted({w for w in reasons.values() if w})) or "no mesh"
+        raise DegenerateMeshError(f"no triangle mesh in the file can carry a watermark: {why}")
     return idx
 
 
@@ -201,7 +228,8 @@ def _embed_doc(doc: MeshDocument, key: str | bytes, payload: str | None, method:
             raise CapacityError(
                 f"too little capacity: {carriers} carriers for a {L}-bit codeword "
                 f"({'32-bit key-derived code' if bits is None else f'{len(bits)}-bit payload'} with "
-                f"{'' if bits is None else 'CRC-32 and '}Hamming(7,4)) at strength {s}",
+                f"{'' if bits is None else 'CRC-32 and '}Hamming(7,4)) at strength {s}"
+                + _no_carrier_hint(carriers),
                 carriers=carriers, needed=L)
         # the embedder's last analysis is the detector's view of the stego mesh (see embed_arrays)
         # and so is every part with room for a copy of its own (a mesh extracted from the file)

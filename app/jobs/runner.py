@@ -7,7 +7,7 @@ import logging
 import time
 import uuid
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 from app.jobs.store import Job, JobKind, JobResult, JobStore
 from app.problems import BUSY, INTERNAL, ProblemError
@@ -18,6 +18,23 @@ log = logging.getLogger("meshmark.jobs")
 
 #: turns a task's return value into the response stored for ``GET /v1/jobs/{id}/result``
 Render = Callable[[Any], JobResult]
+
+
+class Runner(Protocol):
+    """What the routes need of a jobs backend: :class:`JobRunner` (this process's worker pool) or
+    :class:`app.jobs.celery_runner.CeleryJobRunner` (Celery workers through Redis)."""
+
+    @property
+    def store(self) -> JobStore: ...
+
+    async def submit(self, kind: JobKind, task: Task, render: Render) -> Job: ...
+
+    async def cancel(self, job_id: str) -> Job | None: ...
+
+    async def ready(self) -> dict[str, Any]:
+        """Facts for ``/readyz``; raises a ``not-ready`` problem when jobs cannot be taken."""
+
+    async def close(self) -> None: ...
 
 
 class JobRunner:
@@ -92,6 +109,9 @@ class JobRunner:
         self.pool.cancel(job_id)
         await self._finish(job_id, state="cancelled")
         return await self.store.get(job_id)
+
+    async def ready(self) -> dict[str, Any]:
+        return {}  # the pool's own readiness is checked by /readyz
 
     async def close(self) -> None:
         for watcher in list(self._watchers):

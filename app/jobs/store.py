@@ -2,7 +2,7 @@
 
 :class:`JobStore` is the interface the routes and the runner use; :class:`InMemoryJobStore` keeps
 everything in this process (jobs vanish on restart and are not shared between server processes).
-A Redis-backed store would implement the same five coroutines.
+:class:`app.jobs.redis_store.RedisJobStore` implements the same coroutines on Redis.
 """
 
 from __future__ import annotations
@@ -59,6 +59,9 @@ class JobStore(Protocol):
     async def count(self) -> dict[str, int]:
         """Live (unexpired) jobs by state."""
 
+    async def result(self, job: Job) -> JobResult | None:
+        """The response of a succeeded job (None otherwise, or when it is gone)."""
+
 
 class InMemoryJobStore:
     """A dict of immutable :class:`Job` values; expired jobs are dropped when touched or counted."""
@@ -90,6 +93,9 @@ class InMemoryJobStore:
 
     async def delete(self, job_id: str) -> None:
         self._jobs.pop(job_id, None)
+
+    async def result(self, job: Job) -> JobResult | None:
+        return job.result
 
     async def count(self) -> dict[str, int]:
         self._purge()

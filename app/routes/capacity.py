@@ -5,13 +5,13 @@ from __future__ import annotations
 from fastapi import APIRouter, Response
 
 from app.deps import PoolDep
-from app.forms import CapacityForm, StrictFormRoute
+from app.forms import CapacityForm, PooledFormRoute
 from app.problems import problem_responses
 from app.results import as_response, json_result
 from app.routes.embed import MESH_PROBLEMS
 from core.api import CapacityReport
 
-router = APIRouter(route_class=StrictFormRoute, tags=["watermark"])
+router = APIRouter(route_class=PooledFormRoute, tags=["watermark"])
 
 
 @router.post("/v1/capacity", summary="Measure watermark capacity", response_model=CapacityReport,

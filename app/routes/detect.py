@@ -5,14 +5,14 @@ from __future__ import annotations
 from fastapi import APIRouter, Request, Response
 
 from app.deps import PoolDep
-from app.forms import DetectForm, StrictFormRoute
+from app.forms import DetectForm, PooledFormRoute
 from app.logs import log_task
 from app.problems import problem_responses
 from app.results import as_response, json_result
 from app.routes.embed import MESH_PROBLEMS
 from core.api import DetectResult
 
-router = APIRouter(route_class=StrictFormRoute, tags=["watermark"])
+router = APIRouter(route_class=PooledFormRoute, tags=["watermark"])
 
 
 @router.post("/v1/detect", summary="Detect a watermark", response_model=DetectResult,

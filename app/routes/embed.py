@@ -7,7 +7,7 @@ import logging
 from fastapi import APIRouter, Request, Response
 
 from app.deps import PoolDep
-from app.forms import EmbedForm, StrictFormRoute
+from app.forms import EmbedForm, PooledFormRoute
 from app.logs import log_task
 from app.problems import (
     BAD_FORM,
@@ -26,7 +26,7 @@ from app.results import as_response, embed_openapi_response, embedded_result
 
 log = logging.getLogger("meshmark.app")
 
-router = APIRouter(route_class=StrictFormRoute, tags=["watermark"])
+router = APIRouter(route_class=PooledFormRoute, tags=["watermark"])
 
 #: problems of every route that runs the engine on an uploaded mesh
 MESH_PROBLEMS = (BAD_FORM, UNSUPPORTED_FORMAT, MALFORMED_MESH, DEGENERATE_MESH, TOO_LARGE, BUSY,

@@ -19,13 +19,16 @@ async def healthz() -> dict[str, str]:
 
 @router.get("/readyz", summary="Readiness", responses=problem_responses(NOT_READY))
 async def readyz(request: Request) -> dict[str, int | str]:
-    """200 when at least one worker process is alive; 503 `not-ready` otherwise."""
+    """200 when at least one worker process is alive (and, with the Redis jobs backend, Redis
+    answers); 503 `not-ready` otherwise."""
     pool: WorkerPool | None = getattr(request.app.state, "pool", None)
     live = pool.live_workers() if pool is not None else []
     if pool is None or not live:
         raise ProblemError(NOT_READY, "no live worker process", headers={"Retry-After": "1"})
+    runner = getattr(request.app.state, "runner", None)
+    jobs = await runner.ready() if runner is not None else {}
     return {"status": "ready", "workers": len(live), "queued": pool.pending - pool.running,
-            "running": pool.running}
+            "running": pool.running, **jobs}
 
 
 @router.get("/metrics", summary="Prometheus metrics", response_class=PlainTextResponse,
@@ -33,6 +36,9 @@ async def readyz(request: Request) -> dict[str, int | str]:
 async def metrics(request: Request) -> PlainTextResponse:
     state = request.app.state
     runner = getattr(state, "runner", None)
-    jobs = await runner.store.count() if runner is not None else {}
+    try:
+        jobs = await runner.store.count() if runner is not None else {}
+    except ProblemError:  # the job store is unreachable: the other figures still count
+        jobs = {}
     text = state.metrics.render(getattr(state, "pool", None), jobs)
     return PlainTextResponse(text, media_type="text/plain; version=0.0.4; charset=utf-8")

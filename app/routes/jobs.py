@@ -22,6 +22,7 @@ from app.problems import (
     JOB_FAILED,
     JOB_NOT_READY,
     NOT_FOUND,
+    NOT_READY,
     TOO_LITTLE_CAPACITY,
     UNAUTHORIZED,
     ProblemError,
@@ -72,11 +73,11 @@ _CREATE: dict[int | str, dict[str, Any]] = {202: {
     "model": JobStatus, "description": "Accepted; poll the `Location`.",
     "headers": {"Location": {"schema": {"type": "string"}, "description": "/v1/jobs/{id}"}},
 }}
-_KNOWN: dict[int | str, dict[str, Any]] = problem_responses(NOT_FOUND, UNAUTHORIZED)
+_KNOWN: dict[int | str, dict[str, Any]] = problem_responses(NOT_FOUND, UNAUTHORIZED, NOT_READY)
 
 
 @router.post("/v1/jobs/embed", summary="Start an embedding job", status_code=202, response_model=JobStatus,
-             responses={**_CREATE, **problem_responses(*MESH_PROBLEMS, TOO_LITTLE_CAPACITY)})
+             responses={**_CREATE, **problem_responses(*MESH_PROBLEMS, TOO_LITTLE_CAPACITY, NOT_READY)})
 async def create_embed_job(task: EmbedForm, runner: RunnerDep, request: Request) -> JSONResponse:
     """Validate the form now, run the embedding in the background; the result has the same body
     and headers as `POST /v1/embed`."""
@@ -86,7 +87,7 @@ async def create_embed_job(task: EmbedForm, runner: RunnerDep, request: Request)
 
 
 @router.post("/v1/jobs/detect", summary="Start a detection job", status_code=202, response_model=JobStatus,
-             responses={**_CREATE, **problem_responses(*MESH_PROBLEMS)})
+             responses={**_CREATE, **problem_responses(*MESH_PROBLEMS, NOT_READY)})
 async def create_detect_job(task: DetectForm, runner: RunnerDep, request: Request) -> JSONResponse:
     """Run a detection in the background; the result is the JSON of `POST /v1/detect`."""
     job = await runner.submit("detect", task, json_result)
@@ -105,7 +106,7 @@ async def get_job(job_id: str, store: StoreDep) -> JobStatus:
         "Embed jobs: the watermarked mesh with the `X-MeshMark-*` headers of `POST /v1/embed`. "
         "Detect jobs: the JSON of `POST /v1/detect`.",
         {"application/json": {"schema": {"$ref": "#/components/schemas/DetectResult"}}}),
-        **problem_responses(NOT_FOUND, JOB_NOT_READY, JOB_FAILED, UNAUTHORIZED)},
+        **problem_responses(NOT_FOUND, JOB_NOT_READY, JOB_FAILED, UNAUTHORIZED, NOT_READY)},
 )
 async def get_job_result(job_id: str, store: StoreDep) -> Response:
     """409 `job-not-ready` (with `Retry-After`) until the job finishes; 409 `job-failed` (with the
@@ -114,10 +115,13 @@ async def get_job_result(job_id: str, store: StoreDep) -> Response:
     if job.state in ("queued", "running"):
         raise ProblemError(JOB_NOT_READY, f"the job is {job.state}", headers={"Retry-After": "1"},
                            state=job.state, progress=job.progress)
-    if job.result is None:
+    result = await store.result(job)
+    if result is None and job.state == "succeeded":  # deleted or expired since the line above
+        raise ProblemError(NOT_FOUND, "no such job (unknown, deleted or expired)")
+    if result is None:
         detail = "the job failed (see error)" if job.state == "failed" else "the job was cancelled"
         raise ProblemError(JOB_FAILED, detail, state=job.state, error=job.error)
-    return as_response(job.result)
+    return as_response(result)
 
 
 @router.delete(

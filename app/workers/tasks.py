@@ -13,6 +13,7 @@ leave the pipe half-written or locked.
 
 from __future__ import annotations
 
+import ctypes
 import os
 import resource
 import time
@@ -101,14 +102,55 @@ class CapacityTask:
 Task = EmbedTask | DetectTask | CapacityTask
 
 
+#: CPU priority of the worker processes relative to the server process: when the workers saturate
+#: the CPU, the HTTP process still gets it first (429s, health checks and uploads stay fast)
+WORKER_NICENESS = 10
+
+#: glibc malloc of a long-lived worker: blocks under 32 MiB come from the heap, and up to 64 MiB of
+#: freed heap is kept, instead of fresh mmaps and trims at every job.  Otherwise each job faults its
+#: arrays' pages back in from the kernel (measured on a 20k-vertex embed: ~5,000 page faults and
+#: ~5 ms of system time per job, about 7 % of the job).  Workers are recycled (``worker_max_tasks``)
+#: and capped (``worker_memory_mb``), so the memory kept stays bounded.
+MALLOC_MMAP_THRESHOLD = 32 * 1024 * 1024
+MALLOC_TRIM_THRESHOLD = 64 * 1024 * 1024
+
+
+def tune_malloc() -> None:
+    """Apply the thresholds above (glibc only; elsewhere nothing happens)."""
+    try:
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return
+    mallopt(-3, MALLOC_MMAP_THRESHOLD)  # M_MMAP_THRESHOLD
+    mallopt(-1, MALLOC_TRIM_THRESHOLD)  # M_TRIM_THRESHOLD
+
+
 def init_worker(channel: Connection, memory_mb: int) -> None:
-    """Pool initializer: cap the address space, keep the pipe, say hello."""
+    """Pool initializer: lower the CPU priority, cap the address space, keep the pipe, say hello."""
     global _channel
+    try:
+        os.nice(WORKER_NICENESS)
+    except OSError:  # not allowed here: run at the server's priority
+        pass
+    tune_malloc()
     if memory_mb > 0:
         limit = memory_mb * 1024 * 1024
         resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     _channel = channel
+    _warm_up()
     _send("hello", None, os.getpid())
+
+
+def _warm_up() -> None:
+    """Import the engine and every format reader now, so that a fresh worker's first job is not
+    charged for them against its time limit."""
+    import importlib
+
+    from core.formats import FORMATS
+
+    importlib.import_module("core.pipeline")
+    for module, _ in FORMATS.values():
+        importlib.import_module(module)
 
 
 def _send(kind: str, task_id: str | None, value: float | int) -> None:

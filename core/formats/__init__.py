@@ -51,8 +51,13 @@ def detect_format(data: bytes, filename: str | None = None) -> str:
     ext = filename.rsplit(".", 1)[-1].lower() if filename and "." in filename else None
     if found is None:
         what = f"'.{ext}' file" if ext else "file"
+        hint = ""
+        if ext == "stl" and len(data) >= 84:  # binary STL has no magic: its size is its signature
+            n = int.from_bytes(data[80:84], "little")
+            hint = (f" (as a binary STL it declares {n:,} facets, {84 + 50 * n:,} bytes, "
+                    f"but has {len(data):,})")
         raise UnsupportedFormatError(
-            f"unsupported format: this {what} is not OBJ, PLY, STL, OFF, glTF/GLB or 3DS"
+            f"unsupported format: this {what} is not OBJ, PLY, STL, OFF, glTF/GLB or 3DS{hint}"
         )
     known = {e for _, exts in FORMATS.values() for e in exts}
     if ext in known and ext not in FORMATS[found][1]:

@@ -60,7 +60,79 @@ class MeshPart:
     slot_to_vertex: np.ndarray = field(repr=False)
 
 
-def weld(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX2 = np.uint64(0x94D049BB133111EB)
+
+
+def _mix(x: np.ndarray) -> np.ndarray:
+    """splitmix64's finalizer, a bijection of uint64 (in place)."""
+    x ^= x >> np.uint64(30)
+    x *= _MIX1
+    x ^= x >> np.uint64(27)
+    x *= _MIX2
+    x ^= x >> np.uint64(31)
+    return x
+
+
+def _unique_rows(pos: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Distinct rows of a C-contiguous ``(k, 3)`` float64 array, compared bit for bit.
+
+    Rows are hashed to 64 bits and sorted by hash (a plain ``uint64`` sort, much faster than
+    sorting 24-byte rows); rows of equal hash are then compared bit for bit, so the result is
+    exact.  Returns ``None`` if two *different* rows share a hash (then use :func:`_unique_rows_exact`).
+
+    Returns
+    -------
+    first : (n,) int64
+        Slot of the first appearance of each distinct row, ascending.
+    slot_to_row : (k,) int64
+        For every row, the index into ``first`` of the row it equals.
+    """
+    k = len(pos)
+    bits = pos.view(np.uint64)
+    h = _mix(bits[:, 0].copy())
+    h ^= bits[:, 1]
+    h = _mix(h)
+    h ^= bits[:, 2]
+    h = _mix(h)
+    if k < 2 or np.all(np.diff(np.sort(h)) != 0):
+        return np.arange(k, dtype=np.int64), np.arange(k, dtype=np.int64)  # all rows differ
+    order = np.argsort(h)
+    hs = h[order]
+    start = np.empty(k, dtype=bool)
+    start[0] = True
+    np.not_equal(hs[1:], hs[:-1], out=start[1:])
+    del h, hs
+    # every row of a hash group must equal the one before it in sorted order
+    dup = np.flatnonzero(~start)
+    a, b = order[dup], order[dup - 1]
+    if any(not np.array_equal(bits[a, c], bits[b, c]) for c in range(3)):
+        return None
+    del dup, a, b
+    starts = np.flatnonzero(start)
+    group = np.cumsum(start, dtype=np.int64) - 1  # group of each sorted row
+    first_of_group = np.minimum.reduceat(order, starts)
+    is_first = np.zeros(k, dtype=bool)
+    is_first[first_of_group] = True
+    rank = np.cumsum(is_first, dtype=np.int64) - 1  # groups numbered by first appearance
+    slot_to_row = np.empty(k, dtype=np.int64)
+    slot_to_row[order] = rank[first_of_group][group]
+    return np.flatnonzero(is_first), slot_to_row
+
+
+def _unique_rows_exact(pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Same result as :func:`_unique_rows`, by sorting the 24-byte rows themselves (slower)."""
+    rows = pos.view(np.dtype((np.void, 24))).ravel()
+    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    return first[order].astype(np.int64), rank[inverse.ravel()].astype(np.int64)
+
+
+def weld(
+    positions: np.ndarray, triangles: np.ndarray, *, copy: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Weld bit-identical positions.
 
     Parameters
@@ -69,6 +141,10 @@ def weld(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.n
         Stored vertex positions (slots).
     triangles : (m, 3) int
         Triangles into the slots.
+    copy : bool
+        ``False`` lets the returned arrays be ``positions`` and ``triangles`` themselves (or
+        views of them, ``-0.0`` turned into ``+0.0`` in place): for readers that discard both
+        afterwards, as it saves copies of the largest arrays.
 
     Returns
     -------
@@ -84,18 +160,21 @@ def weld(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.n
     pos = np.ascontiguousarray(np.asarray(positions, dtype=np.float64).reshape(-1, 3))
     if not np.all(np.isfinite(pos)):
         raise MeshFormatError("non-finite vertex coordinate (NaN or Inf)")
-    pos = pos + 0.0  # turn -0.0 into +0.0 so that equal positions compare equal bytewise
-    rows = pos.view(np.dtype((np.void, 24))).ravel()
-    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
-    # renumber unique rows by first appearance so welding keeps the file's vertex order
-    order = np.argsort(first, kind="stable")
-    rank = np.empty_like(order)
-    rank[order] = np.arange(order.size)
-    slot_to_vertex = rank[inverse.ravel()].astype(np.int64)
-    vertices = pos[first[order]]
+    # turn -0.0 into +0.0 so that equal positions compare equal bytewise: in place when ``pos`` is
+    # a fresh conversion or the caller gave ``positions`` up
+    if not pos.flags.writeable or (copy and (pos is positions or np.may_share_memory(pos, positions))):
+        pos = pos + 0.0
+    else:
+        pos += 0.0
+    found = _unique_rows(pos)
+    first, slot_to_vertex = found if found is not None else _unique_rows_exact(pos)
     tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     if tri.size and (tri.min() < 0 or tri.max() >= len(pos)):
         raise MeshFormatError("face index out of range")
+    if len(first) == len(pos):  # nothing to weld: slot_to_vertex is the identity
+        shared = copy and (tri is triangles or np.may_share_memory(tri, triangles))
+        return pos, _nondegenerate(tri, shared), slot_to_vertex
+    vertices = pos[first]
     faces = slot_to_vertex[tri] if tri.size else np.zeros((0, 3), np.int64)
     # Distinct slots of one face that share a position were not split copies of one vertex (UV
     # seams, STL soups) but neighbours that a rounding (quantisation, float32) made coincide:
@@ -111,8 +190,15 @@ def weld(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.n
         slot_to_vertex[split] = len(vertices) + np.arange(split.size)
         vertices = np.concatenate([vertices, pos[split]])
         faces = slot_to_vertex[tri]
+    return vertices, _nondegenerate(faces, False), slot_to_vertex
+
+
+def _nondegenerate(faces: np.ndarray, copy: bool) -> np.ndarray:
+    """``faces`` without the triangles that repeat a vertex (a copy when ``copy`` and none is dropped)."""
     keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
-    return vertices, faces[keep], slot_to_vertex
+    if keep.all():  # the usual case; a boolean selection would copy the array much more slowly
+        return faces.copy() if copy else faces
+    return faces[keep]
 
 
 def fan_triangulate(counts: np.ndarray, indices: np.ndarray) -> np.ndarray:
@@ -215,7 +301,10 @@ class MeshDocument:
             v = np.asarray(v, dtype=np.float64)
             if v.shape != part.vertices.shape:
                 raise ValueError(f"part {part.name!r}: expected shape {part.vertices.shape}, got {v.shape}")
-            moved.append(np.flatnonzero(np.any(v != part.vertices, axis=1)))
+            old = part.vertices
+            # column by column: much faster than np.any(v != old, axis=1) on (n, 3) arrays
+            changed = (v[:, 0] != old[:, 0]) | (v[:, 1] != old[:, 1]) | (v[:, 2] != old[:, 2])
+            moved.append(np.flatnonzero(changed))
         return self._patch(vertices, moved, decimals)
 
     def _patch(self, vertices: list[np.ndarray], moved: list[np.ndarray], decimals: int | None) -> bytes:

@@ -153,11 +153,15 @@ class GltfDocument(MeshDocument):
                 continue
             values = float32_xyz(np.asarray(v, dtype=np.float64)[part.slot_to_vertex[sel]])
             sel_buf, sel_off = buf_idx[sel], offsets[sel]
-            for b in np.unique(sel_buf).tolist():
+            lo, hi = int(sel_buf.min()), int(sel_buf.max())
+            for b in [lo] if lo == hi else np.unique(sel_buf).tolist():
                 if b not in new_buffers:
                     new_buffers[b] = bytearray(self._buffers[b][0])
-                here = sel_buf == b
-                patch_xyz(new_buffers[b], sel_off[here], values[here])
+                if lo == hi:
+                    patch_xyz(new_buffers[b], sel_off, values)
+                else:
+                    here = sel_buf == b
+                    patch_xyz(new_buffers[b], sel_off[here], values[here])
         if not new_buffers:
             return self.data
 
@@ -165,12 +169,16 @@ class GltfDocument(MeshDocument):
         for acc_idx, (b, start, stride, count) in self._positions.items():
             if b not in new_buffers:
                 continue
-            old = _strided_xyz(self._buffers[b][0], start, stride, count)
-            new = _strided_xyz(new_buffers[b], start, stride, count)
+            old = _strided_xyz(self._buffers[b][0], start, stride, count, copy=False)
+            new = _strided_xyz(new_buffers[b], start, stride, count, copy=False)
             if np.array_equal(old.view("<u4"), new.view("<u4")):
                 continue
             acc = self._gltf["accessors"][acc_idx]
-            for key, ext in (("min", new.min(axis=0)), ("max", new.max(axis=0))):
+            # column by column: much faster than a reduction over axis 0 of a (count, 3) array
+            low = np.array([new[:, c].min() for c in range(3)], dtype=np.float32)
+            high = np.array([new[:, c].max() for c in range(3)], dtype=np.float32)
+            del old, new
+            for key, ext in (("min", low), ("max", high)):
                 if key in acc and not _same_float32(acc[key], ext):
                     edits.append(("accessors", acc_idx, key, _number_array(ext)))
         for b, buf in new_buffers.items():
@@ -193,25 +201,33 @@ class GltfDocument(MeshDocument):
 
         if self._json_chunk is None:  # .gltf: everything lives in the JSON text
             return text.encode("utf-8")
-        out = bytearray(self.data)
+        # GLB: splice the new JSON chunk and the patched BIN chunk between unchanged byte ranges
+        # (one copy of the file; the BIN chunk always comes after the JSON chunk)
+        data = memoryview(self.data)
+        js, jl = self._json_chunk
+        pieces: list[bytes | bytearray | memoryview] = []
+        at = 0
+        if text is not self._text:
+            body = text.encode("utf-8")
+            body += b" " * (-len(body) % 4)
+            total = struct.unpack_from("<I", self.data, 8)[0] + len(body) - jl
+            pieces += [self.data[:8], struct.pack("<III", total, len(body), CHUNK_JSON), body]
+            at = js + jl
         bin_buf = self._buffers.get(0)
         if 0 in new_buffers and bin_buf is not None and bin_buf[1] is not None:
             start = bin_buf[1]
-            out[start : start + len(new_buffers[0])] = new_buffers[0]
-        if text is self._text:
-            return bytes(out)
-        js, jl = self._json_chunk
-        body = text.encode("utf-8")
-        body += b" " * (-len(body) % 4)
-        total = struct.unpack_from("<I", out, 8)[0] + len(body) - jl
-        head = bytes(out[:8]) + struct.pack("<III", total, len(body), CHUNK_JSON)
-        return head + body + bytes(out[js + jl :])
+            pieces += [data[at:start], new_buffers[0]]
+            at = start + len(new_buffers[0])
+        pieces.append(data[at:])
+        return b"".join(pieces)
 
 
-def _strided_xyz(buf: bytes | bytearray, start: int, stride: int, count: int) -> np.ndarray:
-    """Copy of ``count`` float32 triples starting at ``start``, ``stride`` bytes apart."""
+def _strided_xyz(
+    buf: bytes | bytearray, start: int, stride: int, count: int, copy: bool = True
+) -> np.ndarray:
+    """``count`` float32 triples starting at ``start``, ``stride`` bytes apart (a copy, or a view)."""
     arr = np.ndarray((count, 3), dtype="<f4", buffer=buf, offset=start, strides=(stride, 4))
-    return np.array(arr)
+    return np.array(arr) if copy else arr
 
 
 def _same_float32(old: Any, new: np.ndarray) -> bool:
@@ -327,6 +343,11 @@ def _item(items: list[Any], index: Any, what: str, where: str) -> dict[str, Any]
     if not isinstance(item, dict):
         raise MeshFormatError("must be an object", f"{what}[{index}]")
     return item
+
+
+def _joined(arrays: list[np.ndarray]) -> np.ndarray:
+    """``np.concatenate(arrays)``, without a copy for a single array (the usual one-primitive mesh)."""
+    return arrays[0] if len(arrays) == 1 else np.concatenate(arrays)
 
 
 def _triangles(seq: np.ndarray, mode: int) -> np.ndarray:
@@ -538,9 +559,10 @@ class _Reader:
                     n_faces = icount // 3 if mode == 4 else max(icount - 2, 0)
                     total_faces += n_faces
                     limits.check("faces", total_faces)
+                    # a view of the stored indices: weld() converts the triangles to int64 once
                     seq = np.ndarray(
                         (icount,), dtype=dtype, buffer=self._buffer(ib), offset=istart, strides=(istride,)
-                    ).astype(np.int64)
+                    )
                     if seq.size and int(seq.max()) >= count:
                         raise MeshFormatError(f"index {int(seq.max())} >= POSITION count {count}", iwhere)
                     index_ranges.append((ib, istart, istart + (icount - 1) * istride + dtype.itemsize))
@@ -549,8 +571,9 @@ class _Reader:
                     limits.check("faces", total_faces)
                     seq = np.arange(count, dtype=np.int64)
                 raw = self._buffer(b)
-                pos_list.append(finite_float64(_strided_xyz(raw, start, stride, count), awhere))
-                tri_list.append(_triangles(seq, mode) + n_slots)
+                pos_list.append(finite_float64(_strided_xyz(raw, start, stride, count, copy=False), awhere))
+                tri = _triangles(seq, mode)
+                tri_list.append(tri.astype(np.int64) + n_slots if n_slots else tri)
                 buf_list.append(np.full(count, b, dtype=np.int64))
                 off_list.append(start + stride * np.arange(count, dtype=np.int64))
                 positions[pos_index] = (b, start, stride, count)
@@ -558,7 +581,7 @@ class _Reader:
             if not pos_list:
                 continue
             name = mesh.get("name")
-            vertices, faces, slot_to_vertex = weld(np.concatenate(pos_list), np.concatenate(tri_list))
+            vertices, faces, slot_to_vertex = weld(_joined(pos_list), _joined(tri_list))
             parts.append(
                 MeshPart(
                     name=name if isinstance(name, str) and name else f"mesh{mi}",
@@ -567,7 +590,7 @@ class _Reader:
                     slot_to_vertex=slot_to_vertex,
                 )
             )
-            part_slots.append((np.concatenate(buf_list), np.concatenate(off_list)))
+            part_slots.append((_joined(buf_list), _joined(off_list)))
         if not parts:
             raise DegenerateMeshError("no triangle mesh in the glTF file")
         slots = _ownership(part_slots, index_ranges)
@@ -591,10 +614,13 @@ def _ownership(
     Refuses position elements that partly overlap each other or index data, so that patching
     positions can never change another position or a face.
     """
-    buf = np.concatenate([b for b, _ in part_slots])
-    off = np.concatenate([o for _, o in part_slots])
+    buf = _joined([b for b, _ in part_slots])
+    off = _joined([o for _, o in part_slots])
     keys = (buf << _KEY_SHIFT) | off
-    unique, first = np.unique(keys, return_index=True)
+    if keys.size < 2 or np.all(keys[1:] > keys[:-1]):  # the usual layout: already sorted, no repeats
+        unique, first = keys, np.arange(keys.size)
+    else:
+        unique, first = np.unique(keys, return_index=True)
     if np.any(np.diff(unique) < 12):
         raise MeshFormatError("POSITION accessors overlap each other partially")
     for b, start, end in index_ranges:

@@ -171,7 +171,7 @@ def read(data: bytes, limits: Limits, name: str = "obj") -> ObjDocument:
     del before, bad
     triangles = triangulate(counts, idx)
     del idx
-    vertices, faces, slot_to_vertex = weld(positions, triangles)
+    vertices, faces, slot_to_vertex = weld(positions, triangles, copy=False)  # both are temporaries
 
     part = MeshPart(part_name or "mesh0", vertices, faces, slot_to_vertex)
     doc = ObjDocument(data, [part], slot_lines, mtllibs)

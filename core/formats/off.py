@@ -171,7 +171,7 @@ def read(data: bytes, limits: Limits, name: str = "off") -> OffDocument:
         raise MeshFormatError("face vertex index out of range", f"line {int(fl[face]) + 1}")
     del fb
     triangles = triangulate(ncorner, idx.astype(np.int64))
-    vertices, faces, slot_to_vertex = weld(positions, triangles)
+    vertices, faces, slot_to_vertex = weld(positions, triangles, copy=False)  # both are temporaries
     doc = OffDocument(data, [MeshPart("mesh0", vertices, faces, slot_to_vertex)], slot_lines)
     doc.decimals = decimals
     return doc

@@ -17,8 +17,11 @@ type and byte order; nothing else changes.
 
 from __future__ import annotations
 
+import struct
+from array import array
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -227,6 +230,11 @@ def read(data: bytes, limits: Limits, name: str = "ply") -> PlyDocument:
     limits.check("vertices", vertex.count)
     if face is not None:
         limits.check("faces", face.count)
+    if encoding != "ascii":
+        # binary records whose list lengths vary are walked one by one: the records of every
+        # element with a list, other than the vertices, count against the faces limit
+        listed = sum(e.count for e in elements if e is not vertex and any(p.is_list for p in e.props))
+        limits.check("faces", listed)
     coord = [vertex.index(c) for c in "xyz"]
     if any(i is None or vertex.props[i].is_list for i in coord):
         raise MeshFormatError("PLY vertex element lacks scalar x, y and z properties")
@@ -261,7 +269,7 @@ def read(data: bytes, limits: Limits, name: str = "ply") -> PlyDocument:
         raise MeshFormatError("face vertex index out of range", f"face {face_no}")
     triangles = triangulate(counts, flat)
     del flat
-    vertices, faces, slot_to_vertex = weld(positions, triangles)
+    vertices, faces, slot_to_vertex = weld(positions, triangles, copy=False)  # both are temporaries
     doc.parts = [MeshPart("mesh0", vertices, faces, slot_to_vertex)]
     return doc
 
@@ -381,11 +389,90 @@ def _check_room(data: bytes, pos: int, el: _Element) -> None:
         )
 
 
+#: runs of equal list lengths shorter than this are scanned record by record instead
+_MIN_RUN = 32
+#: a scanned batch stops after this many records or this many bytes of records
+_SCAN_RECORDS = 4096
+_SCAN_BYTES = 1 << 20
+#: a record longer than this is read as a run of its own (never gathered byte by byte)
+_BIG_RECORD = 1 << 16
+_STRUCT_CODES = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I"}
+
+
+@dataclass
+class _Batch:
+    """Consecutive records of varying list lengths, scanned one by one."""
+
+    first: int  # index of the first record in its element
+    offsets: np.ndarray  # (m,) int64 byte offset of every record
+    lens: np.ndarray  # (m, number of list properties) int64 list lengths
+    end: int  # byte offset after the last record
+
+
+def _scan_plan(props: list[_Property], endian: str) -> tuple[list[tuple[int, Any, int, int]], int]:
+    """Per list property: (fixed bytes before its count, count reader, count size, item size);
+    then the fixed bytes after the last list."""
+    plan: list[tuple[int, Any, int, int]] = []
+    fixed = 0
+    for p in props:
+        if p.is_list:
+            assert p.count_type is not None
+            count = struct.Struct(endian + _STRUCT_CODES[p.count_type])
+            plan.append((fixed, count.unpack_from, count.size, np.dtype(p.type).itemsize))
+            fixed = 0
+        else:
+            fixed += np.dtype(p.type).itemsize
+    return plan, fixed
+
+
+def _scan(data: bytes, pos: int, el: _Element, plan: list[tuple[int, Any, int, int]], tail: int,
+          first: int) -> _Batch:
+    """Walk records from ``pos`` one by one (a tight loop, no numpy call per record), up to
+    :data:`_SCAN_RECORDS` records or :data:`_SCAN_BYTES` bytes, stopping before a record longer
+    than :data:`_BIG_RECORD` (the first record must not be one)."""
+    size = len(data)
+    offsets, lens = array("q"), array("q")
+    add_offset, add_len = offsets.append, lens.append
+    n_lists = len(plan)
+    limit = min(_SCAN_RECORDS, el.count - first)
+    start = pos
+    k = 0
+    while k < limit:
+        o = pos
+        for skip, unpack, csize, isize in plan:
+            o += skip
+            if o + csize > size:
+                raise MeshFormatError(f"file ends inside {el.name} record {first + k}", f"byte {o}")
+            n = unpack(data, o)[0]
+            if n < 0:
+                raise MeshFormatError(f"negative list count in {el.name} record {first + k}", f"byte {o}")
+            add_len(n)
+            o += csize + n * isize
+        o += tail
+        if o > size:
+            raise MeshFormatError(f"file ends inside {el.name} record {first + k}", f"byte {pos}")
+        if k and o - pos > _BIG_RECORD:
+            del lens[len(lens) - n_lists :]
+            break
+        add_offset(pos)
+        pos = o
+        k += 1
+        if pos - start >= _SCAN_BYTES:
+            break
+    return _Batch(
+        first,
+        np.frombuffer(offsets, dtype=np.int64),
+        np.frombuffer(lens, dtype=np.int64).reshape(k, n_lists),
+        pos,
+    )
+
+
 def _runs(
     data: bytes, pos: int, el: _Element, endian: str
-) -> Iterator[tuple[int, int, np.ndarray]]:
+) -> Iterator[tuple[int, int, np.ndarray] | _Batch]:
     """Walk a binary element: yields ``(first record, byte offset, records)`` runs of records
-    sharing the same list lengths (one run for fixed-size records).  Ends at the element end.
+    sharing the same list lengths (one run for fixed-size records), and :class:`_Batch` es of
+    records whose list lengths vary (mixed triangles and quads...).  Ends at the element end.
     """
     size = len(data)
     _check_room(data, pos, el)
@@ -394,6 +481,7 @@ def _runs(
         yield 0, pos, np.frombuffer(data, dtype=dt, count=el.count, offset=pos)
         return
     list_ks = [k for k, p in enumerate(el.props) if p.is_list]
+    plan, tail = _scan_plan(el.props, endian)
     cache: dict[tuple[int, ...], np.dtype] = {}
     done, window = 0, 64
     while done < el.count:
@@ -425,10 +513,52 @@ def _runs(
         for k, n in zip(list_ks, lens, strict=True):
             same &= recs[f"n{k}"] == n
         j = m if same.all() else int(np.argmin(same))
+        if j < min(_MIN_RUN, el.count - done) and off - pos <= _BIG_RECORD:
+            # lengths vary from record to record: numpy calls per short run would cost far more
+            # than scanning the records one by one
+            batch = _scan(data, pos, el, plan, tail, done)
+            yield batch
+            done += len(batch.offsets)
+            pos = batch.end
+            window = 64
+            continue
         yield done, pos, recs[:j]
         done += j
         pos += j * dt.itemsize
         window = min(window * 2, 1 << 20) if j == m else 64
+
+
+def _field_offsets(props: list[_Property], lens: np.ndarray, wanted: list[int]) -> dict[int, np.ndarray]:
+    """Byte offset, inside each record of a batch, of the properties ``wanted`` (a list's count)."""
+    at = np.zeros(len(lens), dtype=np.int64)
+    out: dict[int, np.ndarray] = {}
+    li = 0
+    for k, p in enumerate(props):
+        if k in wanted:
+            out[k] = at.copy()
+        if p.is_list:
+            assert p.count_type is not None
+            at += np.dtype(p.count_type).itemsize + lens[:, li] * np.dtype(p.type).itemsize
+            li += 1
+        else:
+            at += np.dtype(p.type).itemsize
+    return out
+
+
+def _gather(data: bytes, offsets: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """One value of ``dtype`` at each byte offset."""
+    raw = np.frombuffer(data, dtype=np.uint8)[offsets[:, None] + np.arange(dtype.itemsize)]
+    return raw.view(dtype).reshape(-1)
+
+
+def _gather_lists(data: bytes, starts: np.ndarray, lens: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """The ``lens[i]`` values of ``dtype`` from byte ``starts[i]`` on, all lists one after another."""
+    total = int(lens.sum())
+    if total == 0:
+        return np.zeros(0, dtype=dtype)
+    rec = np.repeat(np.arange(len(lens)), lens)
+    j = np.arange(total) - np.repeat(np.cumsum(lens) - lens, lens)
+    return _gather(data, starts[rec] + j * dtype.itemsize, dtype)
 
 
 def _read_binary(
@@ -438,7 +568,7 @@ def _read_binary(
     data = doc.data
     pos = body
     positions = np.zeros((0, 3))
-    runs: list[list[int]] = []
+    runs: list[np.ndarray] = []
     counts_l: list[np.ndarray] = []
     flat_l: list[np.ndarray] = []
     for el in elements:
@@ -448,23 +578,55 @@ def _read_binary(
         if is_vertex:
             _check_room(data, pos, el)
             positions = np.empty((el.count, 3))
-        for first, off, recs in _runs(data, pos, el, endian):
+        for item in _runs(data, pos, el, endian):
+            if isinstance(item, _Batch):
+                first, m = item.first, len(item.offsets)
+                if is_vertex:
+                    rel = _field_offsets(el.props, item.lens, coord_idx)
+                    with np.errstate(invalid="ignore"):  # signalling NaNs; refused after the walk
+                        for c, k in enumerate(coord_idx):
+                            dt = np.dtype(endian + el.props[k].type)
+                            positions[first : first + m, c] = _gather(data, item.offsets + rel[k], dt)
+                    # one run per record: (first, offset, size unused, x/y/z offsets in the record)
+                    runs.append(
+                        np.stack(
+                            [first + np.arange(m), item.offsets, np.zeros(m, np.int64)]
+                            + [rel[k] for k in coord_idx],
+                            axis=1,
+                        )
+                    )
+                elif is_face:
+                    assert index_prop is not None
+                    prop = el.props[index_prop]
+                    assert prop.count_type is not None
+                    li = sum(1 for p in el.props[:index_prop] if p.is_list)
+                    n = item.lens[:, li]
+                    starts = item.offsets + _field_offsets(el.props, item.lens, [index_prop])[index_prop]
+                    starts += np.dtype(prop.count_type).itemsize
+                    counts_l.append(n.copy())
+                    values = _gather_lists(data, starts, n, np.dtype(endian + prop.type))
+                    flat_l.append(values.astype(np.int64))
+                pos = item.end
+                continue
+            first, off, recs = item
             m = recs.size
             if is_vertex:
                 dt = recs.dtype
                 fields = dt.fields
                 assert fields is not None
-                runs.append([first, off, dt.itemsize] + [int(fields[f"p{k}"][1]) for k in coord_idx])
+                runs.append(
+                    np.array([[first, off, dt.itemsize] + [int(fields[f"p{k}"][1]) for k in coord_idx]])
+                )
                 with np.errstate(invalid="ignore"):  # signalling NaNs; refused after the walk
                     for c, k in enumerate(coord_idx):
                         positions[first : first + m, c] = recs[f"p{k}"]
             elif is_face:
                 n = int(recs[f"n{index_prop}"][0]) if m else 0
                 counts_l.append(np.full(m, n, np.int64))
-                if n:
-                    flat_l.append(recs[f"p{index_prop}"].reshape(-1).astype(np.int64))
+                if n:  # astype first: one int64 copy of the strided field, then a free reshape
+                    flat_l.append(recs[f"p{index_prop}"].astype(np.int64).reshape(-1))
             pos = off + m * recs.dtype.itemsize
-    doc._runs = np.array(runs, dtype=np.int64).reshape(-1, 6)
+    doc._runs = np.concatenate(runs).astype(np.int64) if runs else np.zeros((0, 6), np.int64)
     counts = counts_l[0] if len(counts_l) == 1 else np.concatenate(counts_l or [np.zeros(0, np.int64)])
     flat = flat_l[0] if len(flat_l) == 1 else np.concatenate(flat_l or [np.zeros(0, np.int64)])
     del counts_l, flat_l

@@ -1,0 +1,153 @@
+"""One job of the Redis backend, as a worker runs it: input blob in, result blob and state out.
+
+The API writes the job's *input* (the task's options, watermark key included, then the mesh bytes)
+to the blob store and sends only the job id through the broker.  A worker:
+
+1. *begins* the job in Redis (atomically: counts the attempt, skips a job that finished, was
+   cancelled or deleted, and fails one whose worker already died ``MAX_ATTEMPTS`` times);
+2. reads the input blob and runs the same engine call as the in-process pool, writing progress to
+   Redis as it goes; a progress write that finds the job ``cancelled`` stops the run there
+   (cooperative cancellation: Celery's ``revoke(terminate=True)`` may kill a process that has
+   already moved on to another job, so it is not used);
+3. writes the result blob, then *finishes* the job (refused when it was cancelled meanwhile), and
+   deletes the input blob.
+
+Failures map to the same problems as in the in-process pool (``app.workers.pool``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+import traceback
+from dataclasses import asdict
+from typing import Any
+
+import redis
+
+from app.jobs.blobs import BlobNotFound, BlobStore
+from app.jobs.redis_store import JobRecords, input_key, result_key
+from app.jobs.store import JobResult
+from app.problems import INTERNAL, TIMED_OUT, WORKER_FAILED, ProblemError, problem_for_core_error, redact
+from app.results import embedded_result, json_result
+from app.workers.tasks import DetectTask, EmbedTask, Task
+from core.errors import MeshMarkError
+from core.formats.base import Limits
+
+log = logging.getLogger("meshmark.workers")
+
+_TASKS: dict[str, type[EmbedTask] | type[DetectTask]] = {"embed": EmbedTask, "detect": DetectTask}
+
+
+class JobCancelled(Exception):
+    """The job was cancelled (or deleted) while it ran: stop, record nothing."""
+
+
+def encode_input(task: Task) -> bytes:
+    """The input blob: the options as one line of JSON, then the mesh bytes as they were uploaded."""
+    options = {k: v for k, v in asdict(task).items() if k not in ("data", "limits")}
+    options["kind"] = task.kind
+    options["limits"] = asdict(task.limits) if task.limits is not None else None
+    return json.dumps(options, separators=(",", ":")).encode() + b"\n" + task.data
+
+
+def decode_input(blob: bytes) -> EmbedTask | DetectTask:
+    header, _, data = blob.partition(b"\n")
+    options: dict[str, Any] = json.loads(header)
+    kind = options.pop("kind")
+    limits = options.pop("limits")
+    return _TASKS[kind](data=data, limits=Limits(**limits) if limits else None, **options)
+
+
+def render(task: EmbedTask | DetectTask, value: Any) -> JobResult:
+    """The stored response, as the routes of ``app.routes.jobs`` render it in-process."""
+    if isinstance(task, EmbedTask):
+        return embedded_result(value, task.filename)
+    return json_result(value)
+
+
+class _Progress:
+    """Writes monotonic progress to Redis, at most every 50 ms unless it moved by 1 % (1.0 always),
+    and stops the run when the job is no longer running."""
+
+    def __init__(self, records: JobRecords, job_id: str) -> None:
+        self.records, self.job_id, self.last, self.at = records, job_id, 0.0, 0.0
+
+    def __call__(self, fraction: float) -> None:
+        fraction = min(max(float(fraction), 0.0), 1.0)
+        now = time.monotonic()
+        if fraction <= self.last or (fraction < 1.0 and fraction - self.last < 0.01 and now - self.at < 0.05):
+            return
+        self.last, self.at = fraction, now
+        state = self.records.progress(self.job_id, fraction)
+        if state != "running":
+            raise JobCancelled(state)
+
+
+def _run(records: JobRecords, blobs: BlobStore, job_id: str, *, timeout: float,
+         memory_mb: int) -> tuple[str, dict[str, Any] | None, JobResult | None]:
+    """The engine call: ``(outcome, problem, result)``, every failure mapped to its problem.  Only
+    Redis errors (from the progress reports) get out: the job is then requeued, upload kept."""
+    from celery.exceptions import SoftTimeLimitExceeded
+
+    task: EmbedTask | DetectTask | None = None
+    try:
+        try:
+            task = decode_input(blobs.get(input_key(job_id)))
+        except BlobNotFound:
+            log.error("job %s: input blob missing from the blob store", job_id)
+            missing = ProblemError(INTERNAL, "the job's upload is missing from the blob store")
+            return "failed", missing.to_dict(), None
+        value = task.run(_Progress(records, job_id))
+        return "succeeded", None, render(task, value)
+    except JobCancelled:
+        log.info("job %s stopped: no longer running", job_id)
+        return "cancelled", None, None
+    except SoftTimeLimitExceeded:
+        log.warning("job %s timed out after %s s", job_id, timeout)
+        return "failed", ProblemError(TIMED_OUT, f"the work ran longer than {timeout:g} s and was "
+                                      "stopped").to_dict(), None
+    except MeshMarkError as exc:
+        key = task.key if task is not None else None
+        extensions = {k: v for k, v in vars(exc).items() if isinstance(v, int | str | None)}
+        return "failed", problem_for_core_error(type(exc), redact(str(exc), key), extensions).to_dict(), None
+    except MemoryError:
+        return "failed", ProblemError(WORKER_FAILED, f"the worker ran out of memory (limit {memory_mb} "
+                                      "MiB)").to_dict(), None
+    except (redis.ConnectionError, redis.TimeoutError):
+        raise
+    except Exception:
+        key = task.key if task is not None else None
+        log.error("job %s failed: %s", job_id, redact(traceback.format_exc(), key))
+        return "failed", ProblemError(INTERNAL, "internal error").to_dict(), None
+
+
+def execute_job(records: JobRecords, blobs: BlobStore, job_id: str, *, worker: str, pid: int,
+                timeout: float, memory_mb: int) -> str:
+    """Run one delivered job; returns what happened (for the log and the tests): ``succeeded``,
+    ``failed``, ``cancelled``, ``poisoned`` or ``skipped``.
+
+    ``SoftTimeLimitExceeded`` (Celery's soft time limit, raised in this process) becomes a
+    ``timed-out`` problem; the hard limit is recorded by the task's ``on_failure``.  The upload is
+    deleted once the job's final state is recorded, not before: a run cut short by a Redis error
+    is requeued and needs it again.
+    """
+    begin = records.begin(job_id, worker, pid)
+    if begin.action == "poisoned":
+        log.error("job %s: its worker died %d times; marked failed", job_id, begin.attempts - 1)
+    elif begin.action == "skip":
+        log.info("job %s is %s: skipped", job_id, begin.state)
+    else:
+        outcome, error, result = _run(records, blobs, job_id, timeout=timeout, memory_mb=memory_mb)
+        if result is not None:
+            blobs.put(result_key(job_id), result.body)
+            if not records.finish(job_id, "succeeded", result=result, completed=True):
+                blobs.delete(result_key(job_id))  # cancelled or deleted while it ran
+                outcome = "cancelled"
+        elif error is not None:
+            records.finish(job_id, "failed", error=error)
+        blobs.delete(input_key(job_id))
+        return outcome
+    blobs.delete(input_key(job_id))
+    return "poisoned" if begin.action == "poisoned" else "skipped"

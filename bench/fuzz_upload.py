@@ -1,0 +1,197 @@
+"""Fuzzing the upload path: real meshes, mutated, sent to the HTTP API (embed, detect, capacity).
+
+    .venv/bin/python -m bench.fuzz_upload [--cases 2000] [--seconds 600] [--seed 6]
+
+Every answer must be a 200 or a documented 4xx problem; a 5xx, a non-problem error body or an
+answer slower than ``--slow`` seconds is a *finding*, saved under ``bench/results/fuzz_findings/``
+(file + what came back) so it can be replayed.  The app runs in-process (ASGI, two real worker
+processes).  The mutation operators are shared with the quick test in
+``tests/app/test_hardening_fuzz.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import random
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+from bench.common import DEFAULT_OUT, mesh_path
+from bench.hardening import record, run_info
+
+#: small and medium shared meshes, one or more per format
+SEEDS = ["teapot.stl", "monkey.glb", "sink.3ds", "spot.obj", "fandisk.off", "Duck.glb", "horse.ply"]
+#: tokens that tend to matter to a parser (counts, numbers, keywords, separators)
+TOKENS = [
+    b"nan",
+    b"-1",
+    b"0",
+    b"4000000000",
+    b"1e999",
+    b"/",
+    b"//",
+    b"\r\n",
+    b"\n",
+    b"#",
+    b"\x00",
+    b" ",
+    b"f",
+    b"v",
+    b"end_header\n",
+    b"element face 3\n",
+    b"255",
+    b"-0",
+    b"1.5",
+    b"\xff",
+    b'"',
+    b"{",
+    b"}",
+    b"[",
+    b"]",
+    b'"uri":"../x.bin"',
+    b"data:;base64,",
+    b"\xff\xff\xff\xff",
+    b"\x00\x00\x00\x80",
+    b"glTF",
+    b"MM",
+    b"solid",
+    b"facet",
+]
+OPS = ("flip", "truncate", "insert", "delete", "token", "duplicate", "int32")
+ROUTES = ("/v1/embed", "/v1/detect", "/v1/capacity")
+
+Op = tuple[str, float, bytes]
+
+
+def apply_ops(data: bytes, ops: list[Op]) -> bytes:
+    """Apply mutation operators; ``where`` in [0, 1] is a position relative to the current size."""
+    for op, where, blob in ops:
+        i = min(int(where * len(data)), max(len(data) - 1, 0))
+        if op == "flip" and data:
+            data = data[:i] + bytes([data[i] ^ (blob[0] if blob and blob[0] else 1)]) + data[i + 1 :]
+        elif op == "truncate":
+            data = data[:i]
+        elif op == "insert":
+            data = data[:i] + blob + data[i:]
+        elif op == "delete":
+            data = data[:i] + data[i + max(1, len(blob)) :]
+        elif op == "token":  # replace the whitespace-delimited token at i
+            j = data.find(b" ", i)
+            data = data[:i] + blob + (data[j:] if j >= 0 else b"")
+        elif op == "duplicate":  # repeat a slice (lists, chunks, lines)
+            n = 1 + len(blob) * 64
+            data = data[:i] + data[i : i + n] * 4 + data[i + n :]
+        elif op == "int32" and len(data) >= 4:  # overwrite a little-endian count or offset
+            i = min(i, len(data) - 4)
+            value = int.from_bytes((blob * 4)[:4] or b"\xff\xff\xff\xff", "little")
+            data = data[:i] + value.to_bytes(4, "little") + data[i + 4 :]
+    return data
+
+
+def random_ops(rng: random.Random) -> list[Op]:
+    ops = []
+    for _ in range(rng.randint(1, 4)):
+        where = rng.random() if rng.random() < 0.6 else rng.random() ** 6  # often near the header
+        blob = rng.choice(TOKENS) if rng.random() < 0.5 else rng.randbytes(rng.randint(1, 6))
+        ops.append((rng.choice(OPS), where, blob))
+    return ops
+
+
+def check_answer(response: Any) -> str | None:
+    """What is wrong with an answer, or ``None``: 200, or a 4xx problem document."""
+    if response.status_code == 200:
+        return None
+    if response.status_code >= 500:
+        return f"{response.status_code}: {response.text[:300]}"
+    if response.headers.get("content-type") != "application/problem+json":
+        return f"{response.status_code} without a problem document"
+    body = response.json()
+    if not str(body.get("type", "")).startswith("https://meshmark.dev/problems/"):
+        return f"{response.status_code} with type {body.get('type')!r}"
+    return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--cases", type=int, default=2000)
+    p.add_argument("--seconds", type=float, default=600.0, help="stop after this long even if cases remain")
+    p.add_argument("--seed", type=int, default=6)
+    p.add_argument("--slow", type=float, default=10.0, help="an answer slower than this is a finding")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    args = p.parse_args(argv)
+
+    from fastapi.testclient import TestClient
+
+    from app.config import Settings
+    from app.main import create_app
+
+    info = run_info()
+    seeds = [(name, mesh_path(name).read_bytes()) for name in SEEDS if mesh_path(name).is_file()]
+    rng = random.Random(args.seed)
+    outcomes: Counter[str] = Counter()
+    by_seed: Counter[str] = Counter()
+    findings: list[dict[str, Any]] = []
+    slowest = 0.0
+    findings_dir = args.out / "fuzz_findings"
+    start = time.monotonic()
+    cases = 0
+    with TestClient(create_app(Settings(workers=2, job_timeout_seconds=60))) as client:
+        while cases < args.cases and time.monotonic() - start < args.seconds:
+            name, original = rng.choice(seeds)
+            data = apply_ops(original, random_ops(rng))
+            route = rng.choice(ROUTES)
+            form = {} if route == "/v1/capacity" else {"key": "fuzz key"}
+            t0 = time.perf_counter()
+            response = client.post(route, files={"mesh": (name, data)}, data=form)
+            seconds = time.perf_counter() - t0
+            slowest = max(slowest, seconds)
+            cases += 1
+            by_seed[name] += 1
+            slug = "ok"
+            if response.status_code != 200:
+                slug = str(response.json().get("type", "?")).rsplit("/", 1)[-1]
+            outcomes[f"{response.status_code} {slug}"] += 1
+            problem = check_answer(response) or (f"slow: {seconds:.1f} s" if seconds > args.slow else None)
+            if problem:
+                digest = hashlib.sha256(data).hexdigest()[:16]
+                findings_dir.mkdir(parents=True, exist_ok=True)
+                (findings_dir / f"{digest}-{name}").write_bytes(data)
+                findings.append({"file": f"{digest}-{name}", "route": route, "problem": problem})
+                print("FINDING", route, name, problem, flush=True)
+            if cases % 200 == 0:
+                print(f"{cases} cases, {time.monotonic() - start:.0f} s", flush=True)
+    elapsed = time.monotonic() - start
+    figures = {
+        "cases": cases,
+        "seconds": round(elapsed, 1),
+        "outcomes": dict(outcomes.most_common()),
+        "by_seed": dict(by_seed),
+        "findings": findings,
+        "slowest_seconds": round(slowest, 2),
+        "seed": args.seed,
+    }
+    lines = [
+        "## Fuzzing the upload path (`bench/fuzz_upload.py`)",
+        "",
+        f"{cases} mutated uploads of {len(seeds)} real meshes ({', '.join(n for n, _ in seeds)}) in "
+        f"{elapsed:.0f} s, spread over embed, detect and capacity; seed {args.seed}. "
+        f"Findings (5xx, an error that is not a problem document, or slower than {args.slow:g} s): "
+        f"**{len(findings)}**. Slowest answer: {slowest:.2f} s.",
+        "",
+        "| Answer | Count |",
+        "| --- | ---: |",
+    ]
+    lines += [f"| {k} | {v} |" for k, v in outcomes.most_common()]
+    if findings:
+        lines += ["", "Findings (files in `bench/results/fuzz_findings/`):", ""]
+        lines += [f"- `{f['file']}` on {f['route']}: {f['problem']}" for f in findings]
+    target = record("fuzz_upload", info, figures, "\n".join(lines), args.out)
+    print(f"{cases} cases, {len(findings)} findings; wrote {target}")
+    return 1 if findings else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,154 @@
+"""HTTP overhead and worker scaling of the service (issue 4's speed figures).
+
+* Overhead: a 100k-vertex binary PLY (turbineblade.ply) embedded through ``POST /v1/embed`` on a
+  real ``meshmark serve`` (1 worker) against the same embed through the CLI
+  (``meshmark embed IN OUT``, a fresh process each time, as a user runs it), median of runs.
+* Scaling: N concurrent embeds of a 20k-vertex mesh (beetle.off) against servers with 1 and with
+  2 worker processes; throughput in jobs/s.
+
+Run: ``python -m bench http``.  Results: ``bench/results/http.md``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+
+from bench.common import meshes_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+MESHMARK = str(Path(sys.executable).with_name("meshmark"))
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Server:
+    def __init__(self, workers: int) -> None:
+        self.port = _free_port()
+        env = dict(os.environ, MESHMARK_QUEUE_SIZE="64", MESHMARK_LOG_LEVEL="warning")
+        self.proc = subprocess.Popen(
+            [MESHMARK, "serve", "--host", "127.0.0.1", "--port", str(self.port), "--workers", str(workers)],
+            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.url = f"http://127.0.0.1:{self.port}"
+        deadline = time.time() + 60
+        while time.time() < deadline:
+            try:
+                if httpx.get(self.url + "/readyz", timeout=2).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        raise RuntimeError("server did not become ready")
+
+    def close(self) -> None:
+        self.proc.terminate()
+        self.proc.wait(timeout=60)
+
+
+def _embed_http(url: str, data: bytes, name: str) -> float:
+    t = time.perf_counter()
+    r = httpx.post(url + "/v1/embed", files={"mesh": (name, data)}, data={"key": "bench"}, timeout=300)
+    r.raise_for_status()
+    return time.perf_counter() - t
+
+
+def _embed_cli(path: Path, out: Path) -> float:
+    t = time.perf_counter()
+    subprocess.run([MESHMARK, "embed", str(path), str(out), "--key", "bench"], check=True,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return time.perf_counter() - t
+
+
+async def _burst(url: str, data: bytes, name: str, n: int) -> float:
+    async with httpx.AsyncClient(timeout=600) as client:
+        async def one() -> None:
+            r = await client.post(url + "/v1/embed", files={"mesh": (name, data)}, data={"key": "bench"})
+            r.raise_for_status()
+
+        t = time.perf_counter()
+        await asyncio.gather(*(one() for _ in range(n)))
+        return n / (time.perf_counter() - t)
+
+
+def _load(avg: tuple[float, float, float]) -> str:
+    return " ".join(f"{x:.2f}" for x in avg)
+
+
+def run(out_dir: Path, runs: int = 5, burst: int = 16) -> Path:
+    big = meshes_dir() / "turbineblade.ply"
+    mid = meshes_dir() / "beetle.off"
+    load_before = os.getloadavg()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "out.ply"
+        server = Server(1)
+        try:
+            data = big.read_bytes()
+            _embed_http(server.url, data, big.name)  # warm-up
+            _embed_cli(big, out)
+            http_t, cli_t = [], []
+            for _ in range(runs):  # alternate, so load changes hit both alike
+                http_t.append(_embed_http(server.url, data, big.name))
+                cli_t.append(_embed_cli(big, out))
+        finally:
+            server.close()
+        thr = {}
+        mid_data = mid.read_bytes()
+        for workers in (1, 2):
+            server = Server(workers)
+            try:
+                asyncio.run(_burst(server.url, mid_data, mid.name, 4))  # warm-up
+                thr[workers] = [asyncio.run(_burst(server.url, mid_data, mid.name, burst)) for _ in range(3)]
+            finally:
+                server.close()
+    h, c = statistics.median(http_t), statistics.median(cli_t)
+    t1, t2 = statistics.median(thr[1]), statistics.median(thr[2])
+    rows.append(f"| HTTP `POST /v1/embed` (1 worker) | {h:.3f} | {', '.join(f'{x:.3f}' for x in http_t)} |")
+    cli_runs = ", ".join(f"{x:.3f}" for x in cli_t)
+    rows.append(f"| CLI `meshmark embed` (fresh process) | {c:.3f} | {cli_runs} |")
+    text = f"""# Service overhead and worker scaling
+
+- Date: {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}
+- Machine: {os.cpu_count()} CPUs; load average before {_load(load_before)}, after {_load(os.getloadavg())}
+- Command: `python -m bench http`
+
+## HTTP round trip against the CLI, {big.name} (99,519 vertices, binary PLY), median of {runs}
+
+| path | median s | runs s |
+| --- | ---: | --- |
+{chr(10).join(rows)}
+
+HTTP / CLI: **{h / c:.2f}** (goal: at most 1.15). The CLI pays interpreter start-up and imports each
+time; the server's worker has them already, which is what a service is for.
+
+## Throughput, {burst} concurrent embeds of {mid.name} (19,887 vertices), median of 3 bursts
+
+| workers | jobs/s (median) | bursts |
+| ---: | ---: | --- |
+| 1 | {t1:.2f} | {', '.join(f'{x:.2f}' for x in thr[1])} |
+| 2 | {t2:.2f} | {', '.join(f'{x:.2f}' for x in thr[2])} |
+
+2 workers / 1 worker: **{t2 / t1:.2f}x** (goal: at least 1.8x; the machine has 2 cores and whatever
+else runs on it competes with the second worker).
+"""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "http.md"
+    path.write_text(text)
+    return path
+
+
+if __name__ == "__main__":
+    print(run(ROOT / "bench" / "results"))

@@ -1,0 +1,501 @@
+"""Load test of a real ``meshmark serve`` (two workers) with httpx and asyncio.
+
+    .venv/bin/python -m bench.load [--phase-seconds 30] [--soak-seconds 120] [--mesh spot.obj]
+
+1. *Calibration*: sequential embeds of ``--mesh`` give the service time S; the capacity is
+   C = workers / S requests per second.
+2. *Phases* at 1x, 2x and 5x C: open-loop Poisson arrivals (each request is sent when its time
+   comes, whatever the server is doing), 5 % of them poison uploads (malformed, hostile or
+   unmarkable files).  Valid requests must get 200 with the byte-identical marked file, or 429
+   (``busy``) when the queue is full; excess must be answered with 429/503 in under 50 ms; the
+   valid p99 latency must stay within the job time limit; poison must get a 4xx problem.
+3. *Soak* at 1x for ``--soak-seconds``: the resident memory (RSS) of the server and its worker
+   processes is sampled every second and must stay flat.
+
+Figures go to ``bench/results/hardening.md`` (with date, machine, load average and command).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import datetime as _dt
+import json
+import os
+import random
+import re
+import signal
+import socket
+import statistics
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from bench.common import DEFAULT_OUT, mesh_path
+from bench.hardening import record, run_info
+
+KEY = "load-test key 2f6a"
+WORKERS = 2
+
+
+def poison_files() -> list[tuple[str, bytes]]:
+    """Uploads that must be refused quickly: a little of every kind of hostile input."""
+    ply = (
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 4000000000\nproperty float x\n"
+        b"property float y\nproperty float z\nend_header\n"
+    ) + bytes(64)
+    deep = ('{"asset":{"version":"2.0"},"x":' + "[" * 50_000 + "]" * 50_000 + "}").encode()
+    tetra = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"
+    nan = b"v 0 0 0\nv nan 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\n"
+    glb = b"glTF" + struct.pack("<IIII", 2, 28, 2**31, 0x4E4F534A) + b"{}      "
+    return [
+        ("huge.ply", ply),
+        ("deep.gltf", deep),
+        ("photo.obj", bytes.fromhex("ffd8ffe0") + bytes(4000)),
+        ("tetra.obj", tetra),
+        ("nan.obj", nan),
+        ("chunk.glb", glb),
+        ("empty.stl", b""),
+        ("bad.obj", b"v 0 0 0\nf 1 2 99\n"),
+    ]
+
+
+@dataclass
+class Result:
+    kind: str  # "valid" or "poison"
+    status: int
+    seconds: float
+    slug: str
+    correct: bool  # valid 200: byte-identical to the reference
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def tree_rss_mb(pid: int) -> float:
+    """Resident memory of ``pid`` and all its descendants, MiB."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(entry.name))
+    total, todo = 0, [pid]
+    while todo:
+        p = todo.pop()
+        todo += children.get(p, [])
+        try:
+            for line in Path(f"/proc/{p}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total += int(line.split()[1])
+        except OSError:
+            pass
+    return total / 1024
+
+
+_ACCESS = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) INFO meshmark\.access \S+ POST /v1/embed "
+                     r"(\d{3}) ([\d.]+) ms$")
+
+
+def server_times(log_text: str) -> list[tuple[float, int, float]]:
+    """(wall time, status, seconds in the app) of every embed request in the access log."""
+    out = []
+    for line in log_text.splitlines():
+        match = _ACCESS.match(line)
+        if match:
+            when = _dt.datetime.strptime(match.group(1), "%Y-%m-%d %H:%M:%S,%f").timestamp()
+            out.append((when, int(match.group(2)), float(match.group(3)) / 1000))
+    return out
+
+
+def percentile(values: list[float], q: float) -> float:
+    if not values:
+        return float("nan")
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, int(q * len(ordered)))]
+
+
+BOUNDARY = "load-boundary-5be1"
+FORM = {"content-type": f"multipart/form-data; boundary={BOUNDARY}"}
+
+
+def form_body(name: str, data: bytes) -> bytes:
+    """The multipart body, encoded once (the load generator shares the machine with the server)."""
+    return (
+        (
+            f'--{BOUNDARY}\r\nContent-Disposition: form-data; name="key"\r\n\r\n{KEY}\r\n'
+            f'--{BOUNDARY}\r\nContent-Disposition: form-data; name="mesh"; filename="{name}"\r\n\r\n'
+        ).encode()
+        + data
+        + f"\r\n--{BOUNDARY}--\r\n".encode()
+    )
+
+
+class RawClient:
+    """A minimal HTTP/1.1 client on asyncio streams: one connection per request, the request bytes
+    built once.  The load generator shares the 2 CPUs with the server and its workers, so it must
+    cost as little as possible (httpx spends most of its time in its pure-Python HTTP parser)."""
+
+    def __init__(self, base: str, timeout: float) -> None:
+        self.port, self.timeout = int(base.rsplit(":", 1)[1]), timeout
+
+    async def __aenter__(self) -> RawClient:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        return None
+
+    @staticmethod
+    def request(body: bytes) -> bytes:
+        return (f"POST /v1/embed HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                f"Content-Type: {FORM['content-type']}\r\nContent-Length: {len(body)}\r\n\r\n"
+                ).encode() + body
+
+    async def post(self, request: bytes) -> tuple[int, bytes]:
+        """Send, read one answer (by its Content-Length), close: a kept-alive request, as most
+        clients send them, on a fresh connection."""
+        reader, writer = await asyncio.open_connection("127.0.0.1", self.port)
+        try:
+            writer.write(request)
+            await writer.drain()
+            head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), self.timeout)
+            status = int(head.split(b" ", 2)[1]) if head.startswith(b"HTTP/1.1 ") else 0
+            length = next((int(line.split(b":", 1)[1]) for line in head.split(b"\r\n")
+                           if line.lower().startswith(b"content-length:")), 0)
+            content = await asyncio.wait_for(reader.readexactly(length), self.timeout)
+        finally:
+            writer.close()
+        return status, content
+
+
+async def one(http: RawClient, kind: str, request: bytes, reference: bytes | None) -> Result:
+    start = time.perf_counter()
+    try:
+        status, content = await http.post(request)
+    except (OSError, TimeoutError, asyncio.IncompleteReadError) as exc:
+        return Result(kind, 0, time.perf_counter() - start, type(exc).__name__, False)
+    seconds = time.perf_counter() - start
+    slug = "ok"
+    if status != 200:
+        try:
+            slug = str(json.loads(content).get("type", "?")).rsplit("/", 1)[-1]
+        except ValueError:
+            slug = "not-json"
+    correct = status == 200 and (reference is None or content == reference)
+    return Result(kind, status, seconds, slug, correct)
+
+
+async def run_phase(
+    base: str,
+    rate: float,
+    seconds: float,
+    valid: bytes,
+    reference: bytes,
+    poison: list[bytes],
+    rng: random.Random,
+    timeout: float,
+) -> list[Result]:
+    tasks: list[asyncio.Task[Result]] = []
+    async with RawClient(base, timeout) as http:
+        start = time.perf_counter()
+        next_at = 0.0
+        while next_at < seconds:
+            delay = start + next_at - time.perf_counter()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            if rng.random() < 0.05:
+                tasks.append(asyncio.create_task(one(http, "poison", rng.choice(poison), None)))
+            else:
+                tasks.append(asyncio.create_task(one(http, "valid", valid, reference)))
+            next_at += rng.expovariate(rate)
+        return list(await asyncio.gather(*tasks))
+
+
+async def calibrate(base: str, body: bytes, reference: bytes, seconds: float) -> tuple[float, float]:
+    """(median latency of a request, completed requests per second) with ``2 * WORKERS`` clients
+    each sending the next request as soon as the last one is answered."""
+    latencies: list[float] = []
+    done = 0
+
+    async def client(http: RawClient, until: float) -> None:
+        nonlocal done
+        while time.perf_counter() < until:
+            result = await one(http, "valid", body, reference)
+            if not result.correct:
+                raise SystemExit(f"calibration request failed: {result}")
+            latencies.append(result.seconds)
+            done += 1
+
+    async with RawClient(base, 600) as http:
+        start = time.perf_counter()
+        await asyncio.gather(*(client(http, start + seconds) for _ in range(2 * WORKERS)))
+        elapsed = time.perf_counter() - start
+    return statistics.median(latencies), done / elapsed
+
+
+def summarise(label: str, rate: float, results: list[Result], job_timeout: float) -> dict[str, Any]:
+    valid = [r for r in results if r.kind == "valid"]
+    poison = [r for r in results if r.kind == "poison"]
+    ok = [r for r in valid if r.status == 200]
+    excess = [r for r in results if r.status in (429, 503) and r.slug in ("busy", "not-ready")]
+    valid_errors = [r for r in valid if not (r.correct or (r.status == 429 and r.slug == "busy"))]
+    poison_bad = [r for r in poison if not 400 <= r.status < 500]  # a problem, or 429 when full
+    return {
+        "phase": label,
+        "rate_per_s": round(rate, 2),
+        "requests": len(results),
+        "valid": len(valid),
+        "valid_200": len(ok),
+        "valid_busy": sum(r.status == 429 for r in valid),
+        "valid_errors": len(valid_errors),
+        "valid_error_kinds": sorted({f"{r.status} {r.slug}" for r in valid_errors}),
+        "poison": len(poison),
+        "poison_not_4xx": len(poison_bad),
+        "poison_kinds": sorted({f"{r.status} {r.slug}" for r in poison}),
+        "valid_p50_s": round(percentile([r.seconds for r in ok], 0.5), 3),
+        "valid_p99_s": round(percentile([r.seconds for r in ok], 0.99), 3),
+        "valid_max_s": round(max((r.seconds for r in ok), default=float("nan")), 3),
+        "job_timeout_s": job_timeout,
+        "excess": len(excess),
+        "excess_p50_ms": round(1000 * percentile([r.seconds for r in excess], 0.5), 1),
+        "excess_p99_ms": round(1000 * percentile([r.seconds for r in excess], 0.99), 1),
+        "excess_max_ms": round(1000 * max((r.seconds for r in excess), default=float("nan")), 1),
+        "poison_p99_ms": round(1000 * percentile([r.seconds for r in poison], 0.99), 1),
+    }
+
+
+async def soak(
+    base: str,
+    pid: int,
+    rate: float,
+    seconds: float,
+    valid: bytes,
+    reference: bytes,
+    poison: list[bytes],
+    rng: random.Random,
+    timeout: float,
+) -> tuple[list[Result], list[tuple[float, float]]]:
+    samples: list[tuple[float, float]] = []
+    start = time.perf_counter()
+
+    async def sample() -> None:
+        while True:
+            samples.append((time.perf_counter() - start, tree_rss_mb(pid)))
+            await asyncio.sleep(1.0)
+
+    sampler = asyncio.create_task(sample())
+    try:
+        results = await run_phase(base, rate, seconds, valid, reference, poison, rng, timeout)
+    finally:
+        sampler.cancel()
+    samples.append((time.perf_counter() - start, tree_rss_mb(pid)))
+    return results, samples
+
+
+def slope_mb_per_min(samples: list[tuple[float, float]]) -> float:
+    xs, ys = [s[0] for s in samples], [s[1] for s in samples]
+    mx, my = statistics.fmean(xs), statistics.fmean(ys)
+    sxx = sum((x - mx) ** 2 for x in xs)
+    return 60 * sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / sxx if sxx else 0.0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--mesh", default="spot.obj", help="shared mesh of the valid requests")
+    p.add_argument("--phase-seconds", type=float, default=30.0)
+    p.add_argument("--calibration-seconds", type=float, default=15.0)
+    p.add_argument("--soak-seconds", type=float, default=120.0)
+    p.add_argument("--job-timeout", type=float, default=120.0)
+    p.add_argument("--seed", type=int, default=6)
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    args = p.parse_args(argv)
+
+    info = run_info()
+    valid = (args.mesh, mesh_path(args.mesh).read_bytes())
+    poison = poison_files()
+    valid_body = RawClient.request(form_body(*valid))
+    poison_bodies = [RawClient.request(form_body(*p)) for p in poison]
+    rng = random.Random(args.seed)
+    port = free_port()
+    base = f"http://127.0.0.1:{port}"
+    log = Path(tempfile.mkstemp(prefix="meshmark-load-", suffix=".log")[1])
+    env = {
+        **os.environ,
+        "MESHMARK_WORKERS": str(WORKERS),
+        "MESHMARK_LOG_LEVEL": "info",  # the access lines time each answer inside the app
+        "MESHMARK_JOB_TIMEOUT_SECONDS": str(args.job_timeout),
+    }
+    meshmark = Path(sys.executable).parent / "meshmark"
+    with open(log, "wb") as out:
+        server = subprocess.Popen(
+            [str(meshmark), "serve", "--port", str(port)], env=env, stdout=out, stderr=subprocess.STDOUT
+        )
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                if httpx.get(f"{base}/readyz", timeout=1).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            if server.poll() is not None or time.monotonic() > deadline:
+                raise SystemExit(f"server did not start: {log.read_text()}")
+            time.sleep(0.1)
+        slots = int(
+            next(
+                line.split()[1]
+                for line in httpx.get(f"{base}/metrics").text.splitlines()
+                if line.startswith("meshmark_queue_capacity ")
+            )
+        )
+
+        # 1. calibration: the reference output, then the throughput of a closed loop that keeps
+        # every worker busy (2 requests per worker in flight): that is the capacity C
+        with httpx.Client(base_url=base, timeout=args.job_timeout + 10) as http:
+            reference = http.post("/v1/embed", content=form_body(*valid), headers=FORM).content
+        service, capacity = asyncio.run(calibrate(base, valid_body, reference, args.calibration_seconds))
+        rss_idle = tree_rss_mb(server.pid)
+        print(
+            f"service time {service:.3f} s, capacity {capacity:.2f} req/s, {slots} slots, "
+            f"RSS {rss_idle:.0f} MB",
+            flush=True,
+        )
+
+        # 2. phases
+        phases = []
+        windows: list[tuple[float, float]] = []
+        for factor in (1, 2, 5):
+            t_start = time.time()
+            results = asyncio.run(
+                run_phase(
+                    base,
+                    factor * capacity,
+                    args.phase_seconds,
+                    valid_body,
+                    reference,
+                    poison_bodies,
+                    rng,
+                    args.job_timeout + 10,
+                )
+            )
+            windows.append((t_start, time.time()))
+            phases.append(summarise(f"{factor}x", factor * capacity, results, args.job_timeout))
+            print(json.dumps(phases[-1]), flush=True)
+            time.sleep(2)  # let the queue drain
+
+        # 3. soak
+        t_start = time.time()
+        soak_results, samples = asyncio.run(
+            soak(
+                base,
+                server.pid,
+                capacity,
+                args.soak_seconds,
+                valid_body,
+                reference,
+                poison_bodies,
+                rng,
+                args.job_timeout + 10,
+            )
+        )
+        windows.append((t_start, time.time()))
+        soak_summary = summarise("soak 1x", capacity, soak_results, args.job_timeout)
+        print(json.dumps(soak_summary), flush=True)
+    finally:
+        server.send_signal(signal.SIGTERM)
+        try:
+            server.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            server.kill()
+    log_text = log.read_text(errors="replace")
+    log.unlink()
+    key_in_log = KEY in log_text
+    logged = server_times(log_text)
+    for ph, (t0, t1) in zip([*phases, soak_summary], windows, strict=True):
+        busy = [sec for when, status, sec in logged if status == 429 and t0 - 1 <= when <= t1 + 1]
+        ph["excess_server_p99_ms"] = round(1000 * percentile(busy, 0.99), 1)
+        ph["excess_server_max_ms"] = round(1000 * max(busy, default=float("nan")), 1)
+
+    rss = [s[1] for s in samples]
+    third = max(1, len(rss) // 3)
+    memory = {
+        "idle_mb": round(rss_idle, 1),
+        "soak_first_third_mb": round(statistics.fmean(rss[:third]), 1),
+        "soak_last_third_mb": round(statistics.fmean(rss[-third:]), 1),
+        "soak_max_mb": round(max(rss), 1),
+        "soak_min_mb": round(min(rss), 1),
+        "slope_mb_per_min": round(slope_mb_per_min(samples), 2),
+        "samples": len(samples),
+    }
+    figures = {
+        "mesh": args.mesh,
+        "mesh_bytes": len(valid[1]),
+        "workers": WORKERS,
+        "slots": slots,
+        "service_s": round(service, 3),
+        "capacity_per_s": round(capacity, 2),
+        "phases": phases,
+        "soak": soak_summary,
+        "soak_seconds": args.soak_seconds,
+        "memory": memory,
+        "key_in_server_log": key_in_log,
+    }
+    rows = []
+    for ph in [*phases, soak_summary]:
+        rows.append(
+            f"| {ph['phase']} | {ph['rate_per_s']} | {ph['requests']} | {ph['valid_200']} | "
+            f"{ph['valid_busy']} | **{ph['valid_errors']}** | "
+            f"{ph['poison']} ({ph['poison_not_4xx']}) | "
+            f"{ph['valid_p50_s']} / {ph['valid_p99_s']} / {ph['valid_max_s']} | {ph['excess']} | "
+            f"{ph['excess_p50_ms']} / {ph['excess_p99_ms']} / {ph['excess_max_ms']} | "
+            f"{ph['excess_server_p99_ms']} / {ph['excess_server_max_ms']} |"
+        )
+    lines = [
+        "## Load (`bench/load.py`)",
+        "",
+        f"`meshmark serve` with {WORKERS} workers and {slots} task slots (defaults), job time limit "
+        f"{args.job_timeout:g} s; valid requests embed `{args.mesh}` ({len(valid[1]):,} bytes); 5 % poison "
+        f"uploads ({len(poison)} kinds: 4e9-vertex PLY, deep JSON, JPEG, tetrahedron, NaN, GLB chunk "
+        f"past the end, empty STL, bad index). Capacity C = {capacity:.2f} "
+        f"requests/s: the throughput of {2 * WORKERS} clients in a closed loop for "
+        f"{args.calibration_seconds:g} s (median latency {service:.3f} s). Open-loop Poisson arrivals, "
+        f"{args.phase_seconds:g} s per phase, then a **{args.soak_seconds / 60:g}-minute soak** at 1x "
+        "(not the 10 minutes of the issue).",
+        "",
+        "| Phase | Rate (req/s) | Requests | Valid 200 | Valid 429 | Valid errors | Poison (not 4xx) | "
+        "Valid latency p50 / p99 / max (s) | Excess 429/503 | Excess latency, client, p50 / p99 / max (ms) | "
+        "Excess latency, in the app, p99 / max (ms) |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | --- | --- |",
+        *rows,
+        "",
+        "Valid 200 answers were byte-identical to the reference embedding; a *valid error* is any other "
+        "answer than that or a 429 `busy`. Poison answers: "
+        + "; ".join(sorted({k for ph in [*phases, soak_summary] for k in ph["poison_kinds"]}))
+        + ".",
+        "",
+        f"Memory (RSS of the server and all its worker processes): {memory['idle_mb']} MB idle after "
+        f"calibration; during the soak {memory['soak_min_mb']}-{memory['soak_max_mb']} MB, mean of the first "
+        f"third {memory['soak_first_third_mb']} MB, last third {memory['soak_last_third_mb']} MB, "
+        f"fitted slope {memory['slope_mb_per_min']} MB/min over {memory['samples']} samples. The key "
+        f"appeared in the server log: {'YES' if key_in_log else 'no'}.",
+    ]
+    target = record("load", info, figures, "\n".join(lines), args.out)
+    print(f"wrote {target}")
+    bad = any(ph["valid_errors"] or ph["poison_not_4xx"] for ph in [*phases, soak_summary]) or key_in_log
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,143 @@
+"""A real ``meshmark serve`` process for the hardening tests: started the way the README says, on a
+free port, with its stderr kept for inspection; and raw-socket helpers for requests no HTTP
+client library would send."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import pytest
+
+MESHMARK = Path(sys.executable).parent / "meshmark"
+
+
+@dataclass
+class Server:
+    base: str
+    port: int
+    proc: subprocess.Popen[bytes]
+    log: Path
+
+    def text(self) -> str:
+        return self.log.read_text(errors="replace")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@contextmanager
+def serve(log: Path, **env: str) -> Iterator[Server]:
+    """``meshmark serve`` with ``MESHMARK_*`` settings from ``env``; stopped (SIGTERM, then SIGKILL)
+    on exit unless the test stopped it already."""
+    if not MESHMARK.exists():
+        pytest.skip(f"{MESHMARK} not installed (pip install -e .)")
+    port = free_port()
+    environ = {**os.environ, "MESHMARK_WORKERS": "1", "MESHMARK_LOG_LEVEL": "info",
+               **{f"MESHMARK_{k.upper()}": v for k, v in env.items()}}
+    with open(log, "wb") as out:
+        proc = subprocess.Popen([str(MESHMARK), "serve", "--port", str(port)], env=environ, stdout=out,
+                                stderr=subprocess.STDOUT)
+    server = Server(f"http://127.0.0.1:{port}", port, proc, log)
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            if httpx.get(f"{server.base}/readyz", timeout=1).status_code == 200:
+                break
+        except httpx.TransportError:
+            pass
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            proc.wait()
+            pytest.fail(f"server did not start: {server.text()}")
+        time.sleep(0.1)
+    try:
+        yield server
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+def raw_exchange(port: int, request: bytes, *, body_chunks: list[bytes] | None = None,
+                 timeout: float = 10.0) -> tuple[int, dict[str, str], bytes, float]:
+    """Send raw bytes (then ``body_chunks`` one by one, while the server lets us), read the answer
+    until the server closes or one full response has arrived.  Returns (status, headers, body,
+    seconds to the first byte of the answer)."""
+    start = time.perf_counter()
+    with socket.create_connection(("127.0.0.1", port), timeout=timeout) as sock:
+        sock.sendall(request)
+        for chunk in body_chunks or []:
+            try:
+                sock.sendall(chunk)
+            except (BrokenPipeError, ConnectionResetError):
+                break
+        data = b""
+        first: float | None = None
+        while True:
+            try:
+                piece = sock.recv(65536)
+            except ConnectionResetError:
+                break
+            if not piece:
+                break
+            first = first if first is not None else time.perf_counter() - start
+            data += piece
+            head, sep, rest = data.partition(b"\r\n\r\n")
+            if sep:
+                headers = _headers(head)
+                if "content-length" in headers and len(rest) >= int(headers["content-length"]):
+                    break
+    head, _, rest = data.partition(b"\r\n\r\n")
+    status = int(head.split(b" ", 2)[1]) if head.startswith(b"HTTP/1.1 ") else 0
+    return status, _headers(head), rest, first if first is not None else time.perf_counter() - start
+
+
+def _headers(head: bytes) -> dict[str, str]:
+    out = {}
+    for line in head.split(b"\r\n")[1:]:
+        name, _, value = line.partition(b":")
+        out[name.strip().lower().decode("latin-1")] = value.strip().decode("latin-1")
+    return out
+
+
+def descendants(parent: int) -> list[int]:
+    """Live descendants of ``parent`` (the fork server and the workers), from /proc."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except (OSError, IndexError):
+                continue
+            if fields[0] != "Z":
+                children.setdefault(int(fields[1]), []).append(int(entry.name))
+    found, todo = [], [parent]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            found.append(child)
+            todo.append(child)
+    return found
+
+
+def alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False

@@ -1,0 +1,61 @@
+"""weld(): the hashed fast path gives exactly what sorting the 24-byte rows gives."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.formats import base
+from core.formats.base import weld
+
+
+def _cases(n: int = 300) -> list[tuple[np.ndarray, np.ndarray]]:
+    rng = np.random.default_rng(11)
+    out = []
+    for _ in range(n):
+        k = int(rng.integers(0, 60))
+        m = max(1, k // 2)
+        pool = rng.integers(-2, 3, (m, 3)).astype(float) * rng.choice([1.0, 0.5, 1e-300, 1e300])
+        pos = pool[rng.integers(0, m, k)]
+        if k and rng.random() < 0.3:
+            pos[rng.integers(0, k)] *= -0.0  # -0.0 welds with +0.0
+        tri = rng.integers(0, max(k, 1), (int(rng.integers(0, 40)), 3)) if k else np.zeros((0, 3), int)
+        out.append((pos, tri))
+    return out
+
+
+def _exact(monkeypatch: pytest.MonkeyPatch, pos: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, ...]:
+    with monkeypatch.context() as m:
+        m.setattr(base, "_unique_rows", lambda p: None)  # always the row-sorting path
+        return weld(pos, tri)
+
+
+def _same(a: tuple[np.ndarray, ...], b: tuple[np.ndarray, ...]) -> bool:
+    return all(x.dtype == y.dtype and np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def test_fast_path_matches_row_sort(monkeypatch: pytest.MonkeyPatch) -> None:
+    for pos, tri in _cases():
+        assert _same(weld(pos, tri), _exact(monkeypatch, pos, tri))
+
+
+def test_hash_collisions_fall_back_to_row_sort(monkeypatch: pytest.MonkeyPatch) -> None:
+    for pos, tri in _cases(60):
+        want = _exact(monkeypatch, pos, tri)
+        with monkeypatch.context() as m:
+            m.setattr(base, "_mix", lambda x: x * np.uint64(0))  # every row hashes to 0
+            assert _same(weld(pos, tri), want)
+
+
+def test_copy_keeps_the_inputs_untouched() -> None:
+    pos = np.array([[-0.0, 1, 2], [0, 1, 2], [3, 4, 5], [6, 7, 8]])
+    tri = np.array([[1, 2, 3]])
+    before = pos.copy()
+    vertices, faces, slots = weld(pos, tri)
+    assert np.array_equal(pos.view(np.uint64), before.view(np.uint64))  # -0.0 still there
+    assert not np.may_share_memory(vertices, pos) and not np.may_share_memory(faces, tri)
+    assert slots.tolist() == [0, 0, 1, 2] and faces.tolist() == [[0, 1, 2]]
+    # copy=False (readers): same result, the arrays may be reused
+    fresh = np.array([[1.0, 2, 3], [4, 5, 6], [7, 8, 9]])
+    v2, f2, _ = weld(fresh, np.array([[0, 1, 2]]), copy=False)
+    assert np.shares_memory(v2, fresh) and f2.tolist() == [[0, 1, 2]]
