@@ -393,8 +393,11 @@ def patch_lines(
         e = data.find(b"\n", s)
         if e < 0:
             e = len(data)
+        # tokens end at a "#" comment, even one glued to a number ("1.5#c"), as the readers
+        # strip comments before splitting (a PLY vertex line never holds a "#")
+        c = data.find(b"#", s, e)
         spans = []
-        for m in _TOKEN.finditer(data, s, e):
+        for m in _TOKEN.finditer(data, s, e if c < 0 else c):
             spans.append(m.span())
             if len(spans) > max(toks):
                 break

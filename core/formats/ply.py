@@ -600,11 +600,11 @@ def _read_binary(
                     prop = el.props[index_prop]
                     assert prop.count_type is not None
                     li = sum(1 for p in el.props[:index_prop] if p.is_list)
-                    n = item.lens[:, li]
+                    lens = item.lens[:, li]
                     starts = item.offsets + _field_offsets(el.props, item.lens, [index_prop])[index_prop]
                     starts += np.dtype(prop.count_type).itemsize
-                    counts_l.append(n.copy())
-                    values = _gather_lists(data, starts, n, np.dtype(endian + prop.type))
+                    counts_l.append(lens.copy())
+                    values = _gather_lists(data, starts, lens, np.dtype(endian + prop.type))
                     flat_l.append(values.astype(np.int64))
                 pos = item.end
                 continue
