@@ -226,11 +226,13 @@ class WorkerPool:
 
     @property
     def running(self) -> int:
-        return sum(1 for e in self._entries.values() if e.started is not None)
+        return sum(1 for e in tuple(self._entries.values()) if e.started is not None)
 
     def live_workers(self) -> list[int]:
-        self._pids = {pid for pid in self._pids if _alive(pid)}
-        return sorted(self._pids)
+        pids = tuple(self._pids)  # one C-level copy: the pipe reader thread adds to the set
+        alive = {pid for pid in pids if _alive(pid)}
+        self._pids.difference_update(set(pids) - alive)
+        return sorted(alive)
 
     def running_tasks(self) -> dict[str, int]:
         """Task id -> pid of the worker running it."""

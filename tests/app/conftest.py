@@ -44,6 +44,13 @@ def sphere_ply() -> bytes:
 
 
 @pytest.fixture(scope="session")
+def slow_ply() -> bytes:
+    """A 655,362-vertex icosphere (24 MB binary PLY): several seconds of work on any machine, far
+    beyond a 1 s job time limit (the 163k one finishes in under 1 s on a quiet machine)."""
+    return trimesh.creation.icosphere(subdivisions=8).export(file_type="ply")
+
+
+@pytest.fixture(scope="session")
 def big_ply() -> bytes:
     """A 163,842-vertex icosphere (6 MB binary PLY): about 2 s of work and +100 MB in a worker."""
     return trimesh.creation.icosphere(subdivisions=7).export(file_type="ply")

@@ -74,12 +74,12 @@ def test_worker_over_its_memory_limit_fails_alone(big_ply, sphere_ply):
         assert "out of memory" in body["detail"] or "died" in body["detail"]
 
 
-def test_worker_over_its_time_limit_fails_alone(big_ply, sphere_ply):
+def test_worker_over_its_time_limit_fails_alone(slow_ply, sphere_ply):
     reference = api.embed_file(sphere_ply, CANARY_KEY, filename="ok.ply").data
     # the big mesh needs about 2 s of work, the small one about 50 ms: a 1 s limit leaves room for a
     # loaded machine
     with make_client(workers=2, job_timeout_seconds=1.0) as client:
-        response = _poison_beside_valid(client, big_ply, sphere_ply, reference)
+        response = _poison_beside_valid(client, slow_ply, sphere_ply, reference)
         assert "1 s" in assert_problem(response, 503, "timed-out")["detail"]
         assert 'meshmark_worker_restarts_total{reason="timeout"} 1' in client.get("/metrics").text
 

@@ -358,14 +358,14 @@ def test_api_restart_loses_no_queued_job(redis_env, workers, sphere_obj):
 
 
 @needs_redis
-def test_time_limit_fails_the_job_not_the_worker(redis_env, tmp_path, big_ply, sphere_obj):
+def test_time_limit_fails_the_job_not_the_worker(redis_env, tmp_path, slow_ply, sphere_obj):
     namespace = f"{NAMESPACE}-timeout"
     env = {**redis_env, "MESHMARK_JOBS_QUEUE": namespace, "MESHMARK_JOB_TIMEOUT_SECONDS": "1"}
     worker = Worker(env, tmp_path / "worker.log")
     try:
         wait_for(worker.ready, timeout=60, interval=0.1)
         with make_client(workers=1, jobs_queue=namespace) as api:
-            status = wait_job(api, _start(api, "big.ply", big_ply))
+            status = wait_job(api, _start(api, "big.ply", slow_ply))
             assert status["state"] == "failed", status
             assert status["error"]["type"] == "https://meshmark.dev/problems/timed-out"
             assert "1 s" in status["error"]["detail"]

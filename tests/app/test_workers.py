@@ -91,9 +91,9 @@ def test_sigkilled_worker_fails_its_synchronous_request(big_ply, sphere_obj):
         assert embed(client, "s.obj", sphere_obj).status_code == 200
 
 
-def test_timeout_kills_the_task_not_the_service(big_ply, sphere_obj):
+def test_timeout_kills_the_task_not_the_service(slow_ply, sphere_obj):
     with make_client(workers=1, job_timeout_seconds=1.0) as client:
-        body = assert_problem(embed(client, "big.ply", big_ply), 503, "timed-out")
+        body = assert_problem(embed(client, "big.ply", slow_ply), 503, "timed-out")
         assert "1 s" in body["detail"]
         assert _restarts(client, "timeout") == 1
         again = embed(client, "s.obj", sphere_obj)
