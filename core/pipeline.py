@@ -65,11 +65,16 @@ def _unusable(vertices: np.ndarray, faces: np.ndarray) -> str | None:
         return "fewer than 4 distinct vertices"
     if len(faces) == 0:
         return "no faces (a point cloud, or every face repeats a vertex)"
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    twice_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    if not np.any(twice_area > ZERO_AREA * bbox_diagonal(vertices) ** 2):
-        return f"all {len(faces)} faces have zero area"
-    return None
+    tiny = ZERO_AREA * bbox_diagonal(vertices) ** 2
+    # one face with an area is enough: look at the first ones before paying for all of them
+    for chunk in (faces[:1024], faces):
+        a, b, c = (vertices[chunk[:, k]] for k in range(3))
+        u, w = b - a, c - a
+        cross = np.stack([u[:, 1] * w[:, 2] - u[:, 2] * w[:, 1], u[:, 2] * w[:, 0] - u[:, 0] * w[:, 2],
+                          u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]], axis=1)
+        if np.any(np.linalg.norm(cross, axis=1) > tiny):
+            return None
+    return f"all {len(faces)} faces have zero area"
 
 
 def _no_carrier_hint(carriers: int) -> str:
