@@ -27,7 +27,7 @@ from core.mesh import Adjacency
 #: rings of colour refinement (the label of a vertex depends on its ROUNDS-ring), then the
 #: larger neighbourhoods tried on regular meshes before the geometric fallback
 ROUNDS = 3
-ROUND_STEPS = (3, 6, 12)
+ROUND_STEPS = (3, 6, 9, 12)
 #: below this share of distinct labels among interior vertices the mesh counts as regular
 REGULAR_SHARE = 0.5
 #: offset of the fallback grid, in cells (irrational, so that symmetric meshes do not sit on cell
