@@ -3,55 +3,21 @@
 from __future__ import annotations
 
 import http.client
-import os
 import signal
-import socket
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import httpx
 import pytest
 
 from tests.app.conftest import KEY, shared_mesh, wait_for
-
-MESHMARK = Path(sys.executable).parent / "meshmark"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from tests.app.real_server import serve
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    if not MESHMARK.exists():
-        pytest.skip(f"{MESHMARK} not installed (pip install -e .)")
-    port = _free_port()
-    env = {**os.environ, "MESHMARK_WORKERS": "1", "MESHMARK_LOG_LEVEL": "warning"}
-    log = tmp_path_factory.mktemp("server") / "server.log"
-    with open(log, "wb") as out:
-        proc = subprocess.Popen([str(MESHMARK), "serve", "--port", str(port)], env=env, stdout=out,
-                                stderr=subprocess.STDOUT)
-    base = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 60
-    while True:
-        try:
-            if httpx.get(f"{base}/healthz", timeout=1).status_code == 200:
-                break
-        except httpx.TransportError:
-            pass
-        if proc.poll() is not None or time.monotonic() > deadline:
-            proc.kill()
-            proc.wait()
-            pytest.fail(f"server did not start: {log.read_text(errors='replace')}")
-        time.sleep(0.1)
-    yield base, port, proc
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(timeout=30)
+    """The real server started with the README's command path (``meshmark serve``), 1 worker."""
+    with serve(tmp_path_factory.mktemp("server") / "server.log", log_level="warning") as running:
+        yield running.base, running.port, running.proc
 
 
 def test_round_trip_over_a_socket(server):
