@@ -471,8 +471,8 @@ def main(argv: list[str] | None = None) -> int:
         f"past the end, empty STL, bad index). Capacity C = {capacity:.2f} "
         f"requests/s: the throughput of {2 * WORKERS} clients in a closed loop for "
         f"{args.calibration_seconds:g} s (median latency {service:.3f} s). Open-loop Poisson arrivals, "
-        f"{args.phase_seconds:g} s per phase, then a **{args.soak_seconds / 60:g}-minute soak** at 1x "
-        "(not the 10 minutes of the issue).",
+        f"{args.phase_seconds:g} s per phase, then a **{args.soak_seconds / 60:g}-minute soak** at 1x"
+        + (" (the issue asks for 10 minutes)." if args.soak_seconds < 600 else "."),
         "",
         "| Phase | Rate (req/s) | Requests | Valid 200 | Valid 429 | Valid errors | Poison (not 4xx) | "
         "Valid latency p50 / p99 / max (s) | Excess 429/503 | Excess latency, client, p50 / p99 / max (ms) | "
