@@ -469,3 +469,27 @@ def check_finite(xyz: np.ndarray, line_numbers: np.ndarray | None = None) -> Non
         row = int(np.flatnonzero(bad.any(axis=1))[0])
         where = f"line {int(line_numbers[row]) + 1}" if line_numbers is not None else None
         raise MeshFormatError("non-finite vertex coordinate (NaN or Inf)", where)
+
+
+def parse_vertex_lines(arr: np.ndarray, begins: np.ndarray, stops: np.ndarray, count: int,
+                       line_numbers: np.ndarray) -> tuple[np.ndarray, int | None]:
+    """Positions and printed decimals of vertex lines whose first 3 numbers are x y z (OBJ's
+    ``v`` lines after the keyword, OFF's vertex lines).
+
+    Returns
+    -------
+    positions : (count, 3) float64
+    decimals : int or None
+        The most decimals printed in those coordinates (None for exponent notation).
+    """
+    text = strip_comments(gather(arr, begins, stops))
+    block = parse_block(text, count, np.float64, line_numbers, spans=True, what="vertex coordinate")
+    short = np.flatnonzero(block.counts < 3)
+    if short.size:
+        line = int(line_numbers[short[0]]) + 1
+        raise MeshFormatError("vertex with fewer than 3 coordinates", f"line {line}")
+    tok = block.offsets[:, None] + np.arange(3)
+    positions = block.values[tok]
+    check_finite(positions, line_numbers)
+    assert block.tok_starts is not None and block.tok_ends is not None
+    return positions, decimals_of(block.text, block.tok_starts[tok], block.tok_ends[tok])

@@ -19,11 +19,10 @@ from core.errors import MeshFormatError
 from core.formats._text import (
     BOM,
     TextMeshDocument,
-    check_finite,
-    decimals_of,
     gather,
     keyword_mask,
     parse_block,
+    parse_vertex_lines,
     split_lines,
     strip_comments,
     sub_lines,
@@ -134,18 +133,8 @@ def read(data: bytes, limits: Limits, name: str = "obj") -> ObjDocument:
     del lines
 
     # vertices: the numbers after "v", x y z first
-    text = strip_comments(gather(arr, v_begin, v_stop))
+    positions, decimals = parse_vertex_lines(arr, v_begin, v_stop, int(vl.size), vl)
     del v_begin, v_stop
-    block = parse_block(text, int(vl.size), np.float64, vl, spans=True, what="vertex coordinate")
-    short = np.flatnonzero(block.counts < 3)
-    if short.size:
-        raise MeshFormatError("vertex with fewer than 3 coordinates", f"line {int(vl[short[0]]) + 1}")
-    tok = block.offsets[:, None] + np.arange(3)
-    positions = block.values[tok]
-    check_finite(positions, vl)
-    assert block.tok_starts is not None and block.tok_ends is not None
-    decimals = decimals_of(block.text, block.tok_starts[tok], block.tok_ends[tok])
-    del block, text, tok
 
     # faces: the vertex index of every corner ("i", "i/t", "i//n", "i/t/n")
     ftext = strip_comments(gather(arr, f_begin, f_stop))

@@ -19,10 +19,9 @@ from core.formats._text import (
     BOM,
     Lines,
     TextMeshDocument,
-    check_finite,
-    decimals_of,
     gather,
     parse_block,
+    parse_vertex_lines,
     ragged_take,
     split_lines,
     strip_comments,
@@ -139,18 +138,8 @@ def read(data: bytes, limits: Limits, name: str = "off") -> OffDocument:
     f_begin, f_stop = lines.first[fl], lines.nexts[fl]
     del lines, content, body, tokens_of
 
-    text = strip_comments(gather(arr, v_begin, v_stop))
+    positions, decimals = parse_vertex_lines(arr, v_begin, v_stop, nv, vl)
     del v_begin, v_stop
-    block = parse_block(text, nv, np.float64, vl, spans=True, what="vertex coordinate")
-    short = np.flatnonzero(block.counts < 3)
-    if short.size:
-        raise MeshFormatError("vertex with fewer than 3 coordinates", f"line {int(vl[short[0]]) + 1}")
-    tok = block.offsets[:, None] + np.arange(3)
-    positions = block.values[tok]
-    check_finite(positions, vl)
-    assert block.tok_starts is not None and block.tok_ends is not None
-    decimals = decimals_of(block.text, block.tok_starts[tok], block.tok_ends[tok])
-    del block, text, tok
 
     ftext = strip_comments(gather(arr, f_begin, f_stop))
     del f_begin, f_stop

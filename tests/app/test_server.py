@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import http.client
 import signal
-from pathlib import Path
 
 import httpx
 import pytest
 
 from tests.app.conftest import KEY, shared_mesh, wait_for
-from tests.app.real_server import serve
+from tests.app.real_server import alive, descendants, serve
 
 
 @pytest.fixture(scope="module")
@@ -55,34 +54,9 @@ def test_key_header_must_be_utf8(server):
 def test_sigterm_stops_server_and_workers(server):
     base, _, proc = server
     assert httpx.get(f"{base}/readyz").status_code == 200
-    pids = _worker_pids(proc.pid)
+    pids = descendants(proc.pid)
     assert pids  # the fork server and the worker
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=30) in (0, -signal.SIGTERM)  # uvicorn re-raises the signal after shutdown
     # the fork server and multiprocessing's resource tracker notice their parent is gone and exit
-    wait_for(lambda: not [pid for pid in pids if _state(pid) not in ("gone", "Z")], timeout=10)
-
-
-def _worker_pids(parent: int) -> list[int]:
-    """Descendants of ``parent`` (the fork server and the workers), from /proc."""
-    children: dict[int, list[int]] = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue
-            children.setdefault(ppid, []).append(int(entry.name))
-    found, todo = [], [parent]
-    while todo:
-        for child in children.get(todo.pop(), []):
-            found.append(child)
-            todo.append(child)
-    return found
-
-
-def _state(pid: int) -> str:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return "gone"
+    wait_for(lambda: not [pid for pid in pids if alive(pid)], timeout=10)
