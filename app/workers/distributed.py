@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 import traceback
 from dataclasses import asdict
 from typing import Any
@@ -31,7 +30,7 @@ from app.jobs.redis_store import JobRecords, input_key, result_key
 from app.jobs.store import JobResult
 from app.problems import INTERNAL, TIMED_OUT, WORKER_FAILED, ProblemError, problem_for_core_error, redact
 from app.results import embedded_result, json_result
-from app.workers.tasks import DetectTask, EmbedTask, Task
+from app.workers.tasks import DetectTask, EmbedTask, Task, ThrottledProgress
 from core.errors import MeshMarkError
 from core.formats.base import Limits
 
@@ -67,19 +66,14 @@ def render(task: EmbedTask | DetectTask, value: Any) -> JobResult:
     return json_result(value)
 
 
-class _Progress:
-    """Writes monotonic progress to Redis, at most every 50 ms unless it moved by 1 % (1.0 always),
-    and stops the run when the job is no longer running."""
+class _Progress(ThrottledProgress):
+    """Writes progress to Redis and stops the run when the job is no longer running."""
 
     def __init__(self, records: JobRecords, job_id: str) -> None:
-        self.records, self.job_id, self.last, self.at = records, job_id, 0.0, 0.0
+        super().__init__()
+        self.records, self.job_id = records, job_id
 
-    def __call__(self, fraction: float) -> None:
-        fraction = min(max(float(fraction), 0.0), 1.0)
-        now = time.monotonic()
-        if fraction <= self.last or (fraction < 1.0 and fraction - self.last < 0.01 and now - self.at < 0.05):
-            return
-        self.last, self.at = fraction, now
+    def emit(self, fraction: float) -> None:
         state = self.records.progress(self.job_id, fraction)
         if state != "running":
             raise JobCancelled(state)

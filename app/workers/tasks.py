@@ -158,11 +158,12 @@ def _send(kind: str, task_id: str | None, value: float | int) -> None:
         _channel.send((kind, task_id, value))
 
 
-class _Progress:
-    """Forwards monotonic progress, at most every 50 ms unless it moved by 1 % (1.0 always)."""
+class ThrottledProgress:
+    """Monotonic progress, passed on at most every 50 ms unless it moved by 1 % (1.0 always);
+    subclasses say where it goes in :meth:`emit`."""
 
-    def __init__(self, task_id: str) -> None:
-        self.task_id, self.last, self.at = task_id, 0.0, 0.0
+    def __init__(self) -> None:
+        self.last, self.at = 0.0, 0.0
 
     def __call__(self, fraction: float) -> None:
         fraction = min(max(float(fraction), 0.0), 1.0)
@@ -170,6 +171,20 @@ class _Progress:
         if fraction <= self.last or (fraction < 1.0 and fraction - self.last < 0.01 and now - self.at < 0.05):
             return
         self.last, self.at = fraction, now
+        self.emit(fraction)
+
+    def emit(self, fraction: float) -> None:
+        raise NotImplementedError
+
+
+class _Progress(ThrottledProgress):
+    """Forwards progress to the parent over the workers' pipe."""
+
+    def __init__(self, task_id: str) -> None:
+        super().__init__()
+        self.task_id = task_id
+
+    def emit(self, fraction: float) -> None:
         _send("progress", self.task_id, fraction)
 
 
