@@ -19,6 +19,7 @@ from typing import Any, NoReturn
 
 from app.inputs import InputError, validate_key, validate_method, validate_payload, validate_strength
 from core import api
+from core.allocator import tune_malloc
 from core.errors import MeshMarkError
 
 EXIT_OK, EXIT_NOT_DETECTED, EXIT_USAGE, EXIT_INTERNAL = 0, 1, 2, 3
@@ -78,6 +79,7 @@ def _print_json(value: dict[str, Any]) -> None:
 
 
 def _embed(args: argparse.Namespace) -> int:
+    tune_malloc()
     key = _read_key(args)
     data = _read_mesh(args.input)
     embedded = api.embed_file(data, key, filename=Path(args.input).name,
@@ -92,6 +94,7 @@ def _embed(args: argparse.Namespace) -> int:
 
 
 def _detect(args: argparse.Namespace) -> int:
+    tune_malloc()
     key = _read_key(args)
     data = _read_mesh(args.input)
     result = api.detect_file(data, key, filename=Path(args.input).name,
@@ -103,6 +106,7 @@ def _detect(args: argparse.Namespace) -> int:
 
 
 def _capacity(args: argparse.Namespace) -> int:
+    tune_malloc()
     data = _read_mesh(args.input)
     report = api.capacity_file(data, filename=Path(args.input).name, method=validate_method(args.method),
                                strength=validate_strength(args.strength))

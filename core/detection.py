@@ -150,16 +150,22 @@ def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
     fp_explicit = sum(2.0 ** -(CRC_BITS + (codeword_length(n) // 7 * 4 - n - CRC_BITS)) for n in lengths)
     fp_key = binomial_tail(KEY_CODE_MAX_ERRORS, KEY_CODE_BITS) if expected is None else 0.0
     fpp_total = min(1.0, n_tries * (fp_explicit + fp_key))
-    found: list[tuple[float, DetectResult]] = []
+    decoders = [_MethodDecoder(method, analyses, key, expected, lengths, n_tries, fpp_total)
+                for method, analyses in per_method.items()]
+    # variant by variant across the methods: a method that reads the mark the embedder's way
+    # answers before any other is decoded the attack-tolerant ways
+    for variant in VARIANTS:
+        found = [hit for d in decoders if (hit := d.try_variant(*variant)) is not None]
+        if found:
+            return min(found, key=lambda item: item[0])[1]
+    # informed detection accepted by its p-value but without an exact CRC match
+    accepted = [d.near for d in decoders if d.near is not None and d.near.detected]
+    if accepted:
+        return accepted[0]
     closest: DetectResult | None = None
-    for method, analyses in per_method.items():
-        hit, near = _detect_method(method, analyses, key, expected, lengths, n_tries, fpp_total)
-        if hit is not None:
-            found.append(hit)
-        if near is not None and (closest is None or (near.bit_errors or 0) < (closest.bit_errors or 0)):
-            closest = near
-    if found:
-        return min(found, key=lambda item: item[0])[1]
+    for d in decoders:
+        if d.near is not None and (closest is None or (d.near.bit_errors or 0) < (closest.bit_errors or 0)):
+            closest = d.near
     if closest is not None:
         return closest
     method0 = next(iter(per_method), None)
@@ -170,25 +176,49 @@ def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
                         parts=[{"carriers": int(len(a.carriers))} for a in analyses0])
 
 
-def _detect_method(method: str, analyses: list[Analysis], key: str | bytes, expected: np.ndarray | None,
-                   lengths: list[int], n_tries: int, fpp_total: float
-                   ) -> tuple[tuple[float, DetectResult] | None, DetectResult | None]:
-    """First successful candidate of one method (with its carrier error rate), and, with an
-    expected payload, the closest failed one."""
-    code = key_code(key)
-    by_L: dict[int, list[int]] = {}
-    for n in lengths:
-        by_L.setdefault(codeword_length(n), []).append(n)
-    carriers = int(sum(len(a.carriers) for a in analyses))
-    parts = [{"carriers": int(len(a.carriers)), "regular_fallback": bool(a.regular)} for a in analyses]
-    near: DetectResult | None = None
-    values = {adaptive: _soft_values(analyses, adaptive) for adaptive in (False, True)}
-    cache: dict = {}
-    for adaptive, ranked in VARIANTS:
-        for L, ns in by_L.items():
+class _MethodDecoder:
+    """Candidates of one method, decoded one variant at a time (slots and votes cached)."""
+
+    def __init__(self, method: str, analyses: list[Analysis], key: str | bytes, expected: np.ndarray | None,
+                 lengths: list[int], n_tries: int, fpp_total: float) -> None:
+        self.method, self.analyses, self.key, self.expected = method, analyses, key, expected
+        self.n_tries, self.fpp_total = n_tries, fpp_total
+        self.code = key_code(key)
+        self.by_L: dict[int, list[int]] = {}
+        for n in lengths:
+            self.by_L.setdefault(codeword_length(n), []).append(n)
+        self.carriers = int(sum(len(a.carriers) for a in analyses))
+        self.parts = [{"carriers": int(len(a.carriers)), "regular_fallback": bool(a.regular)}
+                      for a in analyses]
+        #: with an expected payload, the closest candidate so far
+        self.near: DetectResult | None = None
+        self.values = {adaptive: _soft_values(analyses, adaptive) for adaptive in (False, True)}
+        self.cache: dict = {}
+
+    def try_variant(self, adaptive: bool, ranked: bool | None) -> tuple[float, DetectResult] | None:
+        """The first successful candidate of this variant, with its carrier error rate."""
+        analyses, key, expected, carriers = self.analyses, self.key, self.expected, self.carriers
+        method, parts, cache = self.method, self.parts, self.cache
+        n_tries, fpp_total = self.n_tries, self.fpp_total
+        # the key-derived code first: the paper's default mode, one candidate instead of 65 lengths
+        L = codeword_length(None)
+        if expected is None and not _same_as_auto(analyses, L, ranked):
+            slots, raw, sign = _votes(analyses, self.values[adaptive], key, L, ranked, cache)
+            if len(slots):
+                msg, sums = _decode(slots, raw, sign)
+                key_errors = int((msg[:KEY_CODE_BITS] != self.code).sum())
+                if key_errors <= KEY_CODE_MAX_ERRORS:
+                    dec, p_err = _posterior(slots, raw, sign, sums, msg)
+                    return (p_err, DetectResult(
+                        detected=True, payload=bits_to_str(dec.bits[:KEY_CODE_BITS]),
+                        bit_confidence=[round(float(c), 6) for c in dec.confidence[:KEY_CODE_BITS]],
+                        false_positive_probability=fpp_total, copies=round(carriers / L, 3),
+                        carriers=carriers, crc_ok=False, method=method, key_derived=True,
+                        bit_errors=key_errors, p_value=binomial_tail(key_errors, KEY_CODE_BITS), parts=parts))
+        for L, ns in self.by_L.items():
             if _same_as_auto(analyses, L, ranked):
                 continue
-            slots, raw, sign = _votes(analyses, values[adaptive], key, L, ranked, cache)
+            slots, raw, sign = _votes(analyses, self.values[adaptive], key, L, ranked, cache)
             if len(slots) == 0:
                 continue
             msg, sums = _decode(slots, raw, sign)
@@ -204,6 +234,7 @@ def _detect_method(method: str, analyses: list[Analysis], key: str | bytes, expe
                     fpp = fpp_total if crc_ok and errors == 0 else min(1.0, n_tries * p_value)
                 else:
                     ok, fpp = crc_ok, fpp_total
+                near = self.near
                 if not ok and (expected is None or (near is not None and near.bit_errors is not None
                                                     and errors is not None and near.bit_errors <= errors)):
                     continue
@@ -215,24 +246,7 @@ def _detect_method(method: str, analyses: list[Analysis], key: str | bytes, expe
                     copies=round(carriers / L, 3), carriers=carriers, crc_ok=crc_ok, method=method,
                     key_derived=False, bit_errors=errors, p_value=p_value, parts=parts)
                 if ok and (expected is None or (crc_ok and errors == 0)):
-                    return (p_err, res), None
+                    return p_err, res
                 if near is None or (near.bit_errors or 0) > (errors or 0) or (ok and not near.detected):
-                    near = res
-        L = codeword_length(None)
-        if expected is None and not _same_as_auto(analyses, L, ranked):
-            slots, raw, sign = _votes(analyses, values[adaptive], key, L, ranked, cache)
-            if len(slots):
-                msg, sums = _decode(slots, raw, sign)
-                errors = int((msg[:KEY_CODE_BITS] != code).sum())
-                if errors <= KEY_CODE_MAX_ERRORS:
-                    dec, p_err = _posterior(slots, raw, sign, sums, msg)
-                    return (p_err, DetectResult(
-                        detected=True, payload=bits_to_str(dec.bits[:KEY_CODE_BITS]),
-                        bit_confidence=[round(float(c), 6) for c in dec.confidence[:KEY_CODE_BITS]],
-                        false_positive_probability=fpp_total, copies=round(carriers / L, 3),
-                        carriers=carriers, crc_ok=False, method=method, key_derived=True,
-                        bit_errors=errors, p_value=binomial_tail(errors, KEY_CODE_BITS), parts=parts)), None
-    if near is not None and near.detected:
-        # informed detection accepted by its p-value but without an exact CRC match
-        return (1.0, near), None
-    return None, near
+                    self.near = res
+        return None

@@ -48,14 +48,3 @@ def derive_bytes(key: str | bytes, purpose: str, n: int) -> bytes:
         counter += 1
     return bytes(out[:n])
 
-
-def segment_sum_u64(values: np.ndarray, indptr: np.ndarray) -> np.ndarray:
-    """Sum of uint64 ``values`` over CSR segments (modulo 2**64; empty segments give 0)."""
-    n = len(indptr) - 1
-    out = np.zeros(n, np.uint64)
-    if len(values) == 0:
-        return out
-    nonempty = indptr[1:] > indptr[:-1]
-    with np.errstate(over="ignore"):
-        out[nonempty] = np.add.reduceat(values, indptr[:-1][nonempty])
-    return out

@@ -8,6 +8,7 @@ carrier never moves its own boundary.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -23,20 +24,50 @@ class Adjacency:
     indices : (2e,) int64
         Neighbours of vertex ``i`` are ``indices[indptr[i]:indptr[i + 1]]`` (sorted).
     rows : (2e,) int64
-        Row of every entry of ``indices``.
+        Row of every entry of ``indices`` (built on first use).
     degree : (n,) int64
     boundary : (n,) bool
         Vertex on an edge used by exactly one face.
     nonmanifold : (n,) bool
         Vertex on an edge used by more than two faces.
+    ring_matrix : scipy.sparse.csr_matrix, uint64
+        The same pattern with every entry 1 (for :meth:`ring_sum_u64`).
     """
 
     indptr: np.ndarray
     indices: np.ndarray
-    rows: np.ndarray
     degree: np.ndarray
     boundary: np.ndarray
     nonmanifold: np.ndarray
+    ring_matrix: sp.csr_matrix
+
+    @cached_property
+    def rows(self) -> np.ndarray:
+        return np.repeat(np.arange(len(self.degree), dtype=np.int64), self.degree)
+
+    def ring_sum_u64(self, values: np.ndarray) -> np.ndarray:
+        """Sum of ``values`` (uint64) over each vertex's neighbours, modulo 2**64.
+
+        A sparse matrix-vector product: one pass in C, 2-3x faster than gathering the
+        ``2e`` neighbour values and reducing them per row."""
+        return np.asarray(self.ring_matrix @ np.asarray(values, np.uint64))
+
+    def ring_entries(self, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions in ``indices`` of the neighbours of the vertices ``which``, concatenated.
+
+        Returns
+        -------
+        first : (k,) int64
+            Offset of each vertex's run in ``pos`` (runs are ``degree[which]`` long).
+        pos : (sum of degrees,) int64
+        """
+        which = np.asarray(which, dtype=np.int64)
+        start = self.indptr[which]
+        deg = self.indptr[which + 1] - start
+        ends = np.cumsum(deg)
+        first = ends - deg
+        total = int(ends[-1]) if which.size else 0
+        return first, np.arange(total) + np.repeat(start - first, deg)
 
 
 def adjacency(faces: np.ndarray, n_vertices: int) -> Adjacency:
@@ -56,12 +87,14 @@ def adjacency(faces: np.ndarray, n_vertices: int) -> Adjacency:
     indices = full.indices.astype(np.int64)
     uses = full.data
     degree = np.diff(indptr)
-    rows = np.repeat(np.arange(n, dtype=np.int64), degree)
+    # rows of the few entries that are not interior manifold edges
     boundary = np.zeros(n, bool)
-    boundary[rows[uses == 1]] = True
+    boundary[np.searchsorted(indptr, np.flatnonzero(uses == 1), side="right") - 1] = True
     nonmanifold = np.zeros(n, bool)
-    nonmanifold[rows[uses > 2]] = True
-    return Adjacency(indptr, indices, rows, degree, boundary, nonmanifold)
+    nonmanifold[np.searchsorted(indptr, np.flatnonzero(uses > 2), side="right") - 1] = True
+    # scipy's own (int32) index arrays, shared rather than converted back
+    ring = sp.csr_matrix((np.ones(uses.size, np.uint64), full.indices, full.indptr), shape=(n, n))
+    return Adjacency(indptr, indices, degree, boundary, nonmanifold, ring)
 
 
 def neighbour_moments(
@@ -84,20 +117,24 @@ def neighbour_moments(
         Population covariance of the neighbours about ``mu``.
     """
     which = np.asarray(which, dtype=np.int64)
-    start, stop = adj.indptr[which], adj.indptr[which + 1]
-    deg = stop - start
-    seg = np.repeat(np.arange(which.size), deg)
-    offs = np.arange(deg.sum()) - np.repeat(np.cumsum(deg) - deg, deg)
-    nb = adj.indices[np.repeat(start, deg) + offs]
-    p = vertices[nb]
     k = which.size
+    deg = adj.degree[which]
+    seg = np.repeat(np.arange(k), deg)
+    nb = adj.indices[adj.ring_entries(which)[1]]
     w = 1.0 / deg
-    mu = np.stack([np.bincount(seg, p[:, c], minlength=k) for c in range(3)], axis=1) * w[:, None]
-    d = p - mu[seg]
+    # one contiguous coordinate at a time: 1-D gathers and bincounts are several times faster
+    # than fancy indexing of (n, 3) rows
+    mu = np.empty((k, 3))
+    d = []
+    for c in range(3):
+        pc = np.take(np.ascontiguousarray(vertices[:, c]), nb)
+        m = np.bincount(seg, pc, minlength=k) * w
+        mu[:, c] = m
+        d.append(pc - np.take(m, seg))
     sigma = np.empty((k, 3, 3))
     for r in range(3):
         for c in range(r, 3):
-            s = np.bincount(seg, d[:, r] * d[:, c], minlength=k) * w
+            s = np.bincount(seg, d[r] * d[c], minlength=k) * w
             sigma[:, r, c] = s
             sigma[:, c, r] = s
     return mu, sigma
@@ -113,4 +150,5 @@ def bbox_diagonal(vertices: np.ndarray) -> float:
     """Length of the axis-aligned bounding-box diagonal (0 for an empty array)."""
     if len(vertices) == 0:
         return 0.0
-    return float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+    # column by column: reducing an (n, 3) array along axis 0 is ~10x slower
+    return float(np.sqrt(sum((float(col.max()) - float(col.min())) ** 2 for col in vertices.T)))

@@ -26,9 +26,9 @@ from core.coding import (
 from core.detection import detect_analyses
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, MeshDocument, read_mesh
-from core.mesh import adjacency, bbox_diagonal
+from core.mesh import Adjacency, adjacency, bbox_diagonal
 from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, vertex_labels
-from core.watermark import TOL, Analysis, analyse_methods, embed_parts, own_copy
+from core.watermark import TOL, Analysis, analyse_methods, embed_parts, own_copy, prepare
 
 MAX_KEY_BYTES = 4096
 #: carriers per codeword bit that capacity asks for (skipped carriers and slot collisions)
@@ -114,41 +114,50 @@ def _reads_back(check: DetectResult, bits: np.ndarray | None) -> bool:
     return check.detected and check.key_derived and check.bit_errors == 0
 
 
-def _distortion(doc: MeshDocument, new: list[np.ndarray]) -> tuple[int, float, float, float]:
+def _distortion(doc: MeshDocument, new: list[np.ndarray], adjs: dict[int, Adjacency],
+                hausdorff: bool = True) -> tuple[int, float, float, float]:
     """Vertices moved, RMS and max displacement, and symmetric vertex Hausdorff distance, all
-    relative to the bounding-box diagonal of the input.
+    relative to the bounding-box diagonal of the input (``adjs``: adjacency of each changed part).
 
     Hausdorff: for each moved vertex, the distance from its new position to the nearest old vertex
     among itself and its 1-ring, and from its old position to the nearest new one (unmoved
     vertices are in both sets).  Moves are capped well below an edge, so the nearest vertex is in
     that set.
     """
-    old_all = np.concatenate([p.vertices for p in doc.parts])
-    diag = bbox_diagonal(old_all) or 1.0
-    d2 = np.zeros(0)
+    diag = bbox_diagonal(np.concatenate([p.vertices for p in doc.parts])) or 1.0
+    d2 = []
     haus = 0.0
-    for p, v in zip(doc.parts, new, strict=True):
-        d = np.linalg.norm(v - p.vertices, axis=1)
-        d2 = np.concatenate([d2, d])
+    for i, (p, v) in enumerate(zip(doc.parts, new, strict=True)):
+        d = _row_norms(v - p.vertices)
+        d2.append(d)
         moved = np.flatnonzero(d > 0)
-        if moved.size == 0 or len(p.faces) == 0:
+        if not hausdorff or moved.size == 0 or i not in adjs:
             haus = max(haus, float(d.max()) if d.size else 0.0)
             continue
-        adj = adjacency(p.faces, len(p.vertices))
-        deg = adj.degree[moved]
-        rows = np.repeat(np.arange(moved.size), deg)
-        nb = adj.indices[np.repeat(adj.indptr[moved], deg) + np.arange(deg.sum())
-                         - np.repeat(np.cumsum(deg) - deg, deg)]
-        to_old = np.full(moved.size, np.inf)
-        to_new = np.full(moved.size, np.inf)
-        np.minimum.at(to_old, rows, np.linalg.norm(v[moved][rows] - p.vertices[nb], axis=1))
-        np.minimum.at(to_new, rows, np.linalg.norm(p.vertices[moved][rows] - v[nb], axis=1))
-        to_old = np.minimum(to_old, d[moved])
-        to_new = np.minimum(to_new, d[moved])
-        haus = max(haus, float(to_old.max()), float(to_new.max()))
-    rms = float(np.sqrt((d2**2).mean())) / diag if d2.size else 0.0
-    mx = float(d2.max()) / diag if d2.size else 0.0
-    return int((d2 > 0).sum()), rms, mx, haus / diag
+        adj = adjs[i]
+        # an isolated moved vertex is nearest to itself
+        haus = max(haus, float(d[moved[adj.degree[moved] == 0]].max(initial=0.0)))
+        moved = moved[adj.degree[moved] > 0]
+        first, pos = adj.ring_entries(moved)
+        rows = np.repeat(moved, adj.degree[moved])
+        nb = adj.indices[pos]
+        old_r, new_r = np.take(p.vertices, rows, axis=0), np.take(v, rows, axis=0)
+        old_n, new_n = np.take(p.vertices, nb, axis=0), np.take(v, nb, axis=0)
+        # nearest among the 1-ring, per moved vertex (runs of its degree)
+        to_old = np.minimum.reduceat(_row_norms(new_r - old_n), first) if moved.size else np.zeros(0)
+        to_new = np.minimum.reduceat(_row_norms(old_r - new_n), first) if moved.size else np.zeros(0)
+        dm = d[moved]
+        haus = max(haus, float(np.minimum(to_old, dm).max(initial=0.0)),
+                   float(np.minimum(to_new, dm).max(initial=0.0)))
+    d_all = np.concatenate(d2) if d2 else np.zeros(0)
+    rms = float(np.sqrt((d_all**2).mean())) / diag if d_all.size else 0.0
+    mx = float(d_all.max()) / diag if d_all.size else 0.0
+    return int((d_all > 0).sum()), rms, mx, haus / diag
+
+
+def _row_norms(x: np.ndarray) -> np.ndarray:
+    """Euclidean norm of each row of an (n, 3) array (column by column: ~10x faster than axis=1)."""
+    return np.sqrt(x[:, 0] ** 2 + x[:, 1] ** 2 + x[:, 2] ** 2)
 
 
 class _ArrayDoc(MeshDocument):
@@ -217,13 +226,14 @@ def _embed_doc(doc: MeshDocument, key: str | bytes, payload: str | None, method:
     # cap_factor) before refusing; text formats may need more printed decimals
     tries = [(f, d) for f in CAP_FACTORS
              for d in ([decimals] if decimals is None else [decimals, decimals + 2, decimals + 4, 17])]
+    meshes = [(doc.parts[i].vertices, doc.parts[i].faces) for i in parts]
+    prepared = prepare([v for v, _ in meshes], [f for _, f in meshes])
     for attempt, (factor, dec) in enumerate(tries):
         new = [p.vertices.copy() for p in doc.parts]
         tol = replace(TOL, coarse_move=TOL.coarse_move * factor, max_local_move=TOL.max_local_move * factor,
                       max_move=TOL.max_move * factor)
-        vs, stats, final = embed_parts([(doc.parts[i].vertices, doc.parts[i].faces) for i in parts], key,
-                                       codeword, method, s, quantize=lambda x, d=dec: doc.quantize(x, d),
-                                       tol=tol)
+        vs, stats, final = embed_parts(meshes, key, codeword, method, s, tol=tol, prepared=prepared,
+                                       quantize=lambda x, d=dec: doc.quantize(x, d))
         for k, i in enumerate(parts):
             new[i] = vs[k]
         carriers = sum(st.carriers for st in stats)
@@ -247,7 +257,7 @@ def _embed_doc(doc: MeshDocument, key: str | bytes, payload: str | None, method:
         raise CapacityError("the watermark could not be made readable on this mesh at this strength "
                             f"({carriers} carriers, {skipped} over the displacement cap)",
                             carriers=carriers, needed=L)
-    moved, rms, mx, haus = _distortion(doc, new)
+    moved, rms, mx, haus = _distortion(doc, new, {i: prepared[k][0] for k, i in enumerate(parts)})
     part_info = []
     for k, i in enumerate(parts):
         part_info.append({"name": doc.parts[i].name, "vertices": int(len(doc.parts[i].vertices)),
@@ -316,7 +326,7 @@ def capacity_file(data: bytes, *, filename: str | None = None, method: str = DEF
                      "carriers": stats[k].carriers})
     max_bits = _largest_payload(carriers / CAPACITY_MARGIN)
     by_copies = {str(c): _largest_payload(carriers / c) for c in (1, 2, 4, 8, 16)}
-    _, rms, mx, _ = _distortion(doc, new)
+    _, rms, mx, _ = _distortion(doc, new, {}, hausdorff=False)
     return CapacityReport(method=method, strength=s, carriers=carriers, max_payload_bits=max_bits,
                           copies_of_default=round(carriers / codeword_length(None), 3),
                           codeword_bits_default=codeword_length(None), payload_bits_by_copies=by_copies,

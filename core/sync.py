@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.hashing import combine, mix64, segment_sum_u64
+from core.hashing import combine, mix64
 from core.mesh import Adjacency
 
 #: rings of colour refinement (the label of a vertex depends on its ROUNDS-ring), then the
@@ -66,8 +66,7 @@ def wl_colours(adj: Adjacency, rounds: int = ROUNDS, start: np.ndarray | None = 
     else:
         c = start
     for t in range(first, rounds):
-        nb = mix64(c ^ np.uint64(0x5851F42D4C957F2D * (t + 1) % 2**64))[adj.indices]
-        c = combine(c, segment_sum_u64(nb, adj.indptr))
+        c = combine(c, adj.ring_sum_u64(mix64(c ^ np.uint64(0x5851F42D4C957F2D * (t + 1) % 2**64))))
     return c
 
 
@@ -152,8 +151,8 @@ def _fallback_cells(vertices: np.ndarray, adj: Adjacency) -> np.ndarray:
     does not move with it)."""
     n = len(vertices)
     deg = np.maximum(adj.degree, 1)
-    mu = np.stack([np.bincount(adj.rows, vertices[adj.indices, c], minlength=n) for c in range(3)], 1)
-    mu = mu / deg[:, None]
+    cols = (np.take(np.ascontiguousarray(vertices[:, c]), adj.indices) for c in range(3))
+    mu = np.stack([np.bincount(adj.rows, x, minlength=n) for x in cols], 1) / deg[:, None]
     # cell size from the vertex count only: the median edge length moves with the carriers
     # and a 0.1 % change of the cell shifts far cells by a whole cell
     return frame_cells(mu, vertices, CELLS_PER_RADIUS / np.sqrt(max(n, 1)))
@@ -172,27 +171,31 @@ def select_carriers(adj: Adjacency, priority: np.ndarray, usable: np.ndarray) ->
         Selected vertex indices, sorted.
     """
     n = len(priority)
-    alive = usable.copy()
     selected = np.zeros(n, bool)
-    r, c = adj.rows, adj.indices
-    keep = alive[r] & alive[c]
-    r, c = r[keep], c[keep]
-    while True:
-        # live neighbour maximum per vertex over the remaining live-live edges
-        nbmax = np.zeros(n, np.uint64)
-        if r.size:
-            vals = priority[c]
-            starts = np.flatnonzero(np.r_[True, r[1:] != r[:-1]])
-            nbmax[r[starts]] = np.maximum.reduceat(vals, starts)
-        win = alive & (priority > nbmax)
-        if not win.any():
+    alive = usable.copy()
+    # a vertex that is not alive (unusable, selected or next to a selected one) has priority 0
+    # for its neighbours: it never blocks one (a priority of exactly 0 never wins either)
+    live = np.where(alive, priority, np.uint64(0))
+    todo = np.flatnonzero(alive)
+    nonempty = adj.degree > 0
+    while todo.size:
+        if 2 * todo.size > n:  # most of the mesh: straight from the CSR
+            full = np.zeros(n, np.uint64)
+            if adj.indices.size:
+                full[nonempty] = np.maximum.reduceat(live[adj.indices], adj.indptr[:-1][nonempty])
+            nbmax = full[todo]
+        else:
+            first, pos = adj.ring_entries(todo)
+            has = adj.degree[todo] > 0
+            nbmax = np.zeros(todo.size, np.uint64)
+            if pos.size:
+                nbmax[has] = np.maximum.reduceat(live[adj.indices[pos]], first[has])
+        win = todo[priority[todo] > nbmax]
+        if not win.size:
             break
-        selected |= win
-        dead = win.copy()
-        dead[c[win[r]]] = True
-        alive &= ~dead
-        keep = alive[r] & alive[c]
-        r, c = r[keep], c[keep]
-        if not alive.any():
-            break
+        selected[win] = True
+        gone = np.concatenate([win, adj.indices[adj.ring_entries(win)[1]]])
+        alive[gone] = False
+        live[gone] = 0
+        todo = todo[alive[todo]]
     return np.flatnonzero(selected)

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.eig3 import eigh3
 from core.hashing import derive, mix64
 from core.mesh import Adjacency, adjacency, bbox_diagonal, neighbour_moments
 from core.sync import Labels, select_carriers, vertex_labels
@@ -44,7 +45,7 @@ class Tolerances:
     max_local_move: float = 0.8     # displacement cap, units of the local scale
     max_move: float = 5e-3          # displacement cap, fraction of the bounding-box diagonal...
     coarse_move: float = 0.25       # ...or this fraction of the median local scale on coarse meshes
-    verify_rounds: int = 6          # embed -> re-analyse -> fix rounds
+    verify_rounds: int = 12         # embed -> re-analyse -> fix rounds (regular fallback: up to 10 seen)
 
 
 TOL = Tolerances()
@@ -100,7 +101,7 @@ def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes,
     prio = mix64(labels.labels ^ salt_p)
     sel = select_carriers(adj, prio, labels.usable)
     mu, sigma = neighbour_moments(v, adj, sel)
-    lam, axes = np.linalg.eigh(sigma)
+    lam, axes = eigh3(sigma)
     lam = np.maximum(lam, 0.0)
     scale = np.sqrt(lam.sum(axis=1))
     ok = (scale > 0) & (lam[:, 1] > tol.min_flatness * np.maximum(lam[:, 2], 1e-300))
@@ -200,6 +201,7 @@ class EmbedStats:
 
 def embed_parts(meshes: list[tuple[np.ndarray, np.ndarray]], key: str | bytes, codeword: np.ndarray,
                 method: str, strength: float, quantize=None, tol: Tolerances = TOL,
+                prepared: list[tuple[Adjacency, Labels]] | None = None,
                 ) -> tuple[list[np.ndarray], list[EmbedStats], list[Analysis]]:
     """Move carriers of one or several meshes so that the detector reads ``codeword``.
 
@@ -215,6 +217,9 @@ def embed_parts(meshes: list[tuple[np.ndarray, np.ndarray]], key: str | bytes, c
     quantize : callable, optional
         What storing the positions does to them (float32, printed decimals); carriers are
         verified after it.
+    prepared : list of (Adjacency, Labels), optional
+        Each mesh's adjacency and :func:`~core.sync.vertex_labels` of its input positions, when
+        the caller has them (retries, the distortion report).
 
     Returns
     -------
@@ -233,8 +238,10 @@ def embed_parts(meshes: list[tuple[np.ndarray, np.ndarray]], key: str | bytes, c
     L = len(codeword)
     v0s = [np.asarray(v, np.float64) for v, _ in meshes]
     faces = [np.asarray(f, np.int64) for _, f in meshes]
-    adjs = [adjacency(f, len(v)) for v, f in zip(v0s, faces, strict=True)]
-    labels = [vertex_labels(v, adj) for v, adj in zip(v0s, adjs, strict=True)]
+    if prepared is None:
+        prepared = prepare(v0s, faces)
+    adjs = [adj for adj, _ in prepared]
+    labels = [lab for _, lab in prepared]
     vs = [v.copy() for v in v0s]
     skipped = [np.zeros(len(v), bool) for v in v0s]
     an = [analyse(v, f, key, method, adj=adj, labels=lab, tol=tol)
@@ -281,6 +288,15 @@ def embed_parts(meshes: list[tuple[np.ndarray, np.ndarray]], key: str | bytes, c
     stats = [EmbedStats(carriers[k], int(skipped[k].sum()), int(np.any(vs[k] != v0s[k], axis=1).sum()),
                         rounds[k]) for k in range(len(meshes))]
     return vs, stats, an
+
+
+def prepare(vertices: list[np.ndarray], faces: list[np.ndarray]) -> list[tuple[Adjacency, Labels]]:
+    """Adjacency and keyless labels of each mesh (what :func:`embed_parts` needs first)."""
+    out = []
+    for v, f in zip(vertices, faces, strict=True):
+        adj = adjacency(f, len(v))
+        out.append((adj, vertex_labels(np.asarray(v, np.float64), adj)))
+    return out
 
 
 def embed_arrays(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, codeword: np.ndarray,

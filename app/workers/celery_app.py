@@ -39,7 +39,8 @@ from app.jobs.blobs import LocalBlobStore
 from app.jobs.redis_store import JobRecords, input_key
 from app.problems import TIMED_OUT, ProblemError
 from app.workers.distributed import execute_job
-from app.workers.tasks import WORKER_NICENESS, tune_malloc
+from app.workers.tasks import WORKER_NICENESS
+from core.allocator import tune_malloc
 
 log = logging.getLogger("meshmark.workers")
 

@@ -13,7 +13,6 @@ leave the pipe half-written or locked.
 
 from __future__ import annotations
 
-import ctypes
 import os
 import resource
 import time
@@ -23,6 +22,7 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 from core import api
+from core.allocator import tune_malloc
 from core.errors import MeshMarkError
 from core.formats.base import Limits
 
@@ -105,25 +105,6 @@ Task = EmbedTask | DetectTask | CapacityTask
 #: CPU priority of the worker processes relative to the server process: when the workers saturate
 #: the CPU, the HTTP process still gets it first (429s, health checks and uploads stay fast)
 WORKER_NICENESS = 10
-
-#: glibc malloc of a long-lived worker: blocks under 32 MiB come from the heap, and up to 64 MiB of
-#: freed heap is kept, instead of fresh mmaps and trims at every job.  Otherwise each job faults its
-#: arrays' pages back in from the kernel (measured on a 20k-vertex embed: ~5,000 page faults and
-#: ~5 ms of system time per job, about 7 % of the job).  Workers are recycled (``worker_max_tasks``)
-#: and capped (``worker_memory_mb``), so the memory kept stays bounded.
-MALLOC_MMAP_THRESHOLD = 32 * 1024 * 1024
-MALLOC_TRIM_THRESHOLD = 64 * 1024 * 1024
-
-
-def tune_malloc() -> None:
-    """Apply the thresholds above (glibc only; elsewhere nothing happens)."""
-    try:
-        mallopt = ctypes.CDLL("libc.so.6").mallopt
-    except (OSError, AttributeError):
-        return
-    mallopt(-3, MALLOC_MMAP_THRESHOLD)  # M_MMAP_THRESHOLD
-    mallopt(-1, MALLOC_TRIM_THRESHOLD)  # M_TRIM_THRESHOLD
-
 
 def init_worker(channel: Connection, memory_mb: int) -> None:
     """Pool initializer: lower the CPU priority, cap the address space, keep the pipe, say hello."""
