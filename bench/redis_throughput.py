@@ -173,7 +173,7 @@ async def _measure(args: argparse.Namespace, env: dict[str, str]) -> dict[str, A
 
     n_workers = args.jobs
     n_jobs = 16 if args.quick else 60
-    rounds = 2 if args.quick else 5
+    rounds = 2 if args.quick else 9
     trips = 10 if args.quick else 30
     beetle = EmbedTask(data=mesh_path(THROUGHPUT_MESH).read_bytes(), key=KEY, filename=THROUGHPUT_MESH)
     sphere = trimesh.creation.icosphere(subdivisions=4).export(file_type="obj").encode()
