@@ -56,6 +56,30 @@ SMALL_MEDIUM_MESHES = [
 ]
 
 
+_TICK = os.sysconf("SC_CLK_TCK")
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a live process (0 when it is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / _TICK
+
+
+def child_pids(pid: int, recursive: bool = False) -> list[int]:
+    """Child processes of ``pid`` (all descendants when ``recursive``), whichever of its threads
+    started them."""
+    kids = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            kids += [int(p) for p in (task / "children").read_text().split()]
+        except OSError:
+            continue
+    return kids + [g for k in kids for g in child_pids(k, True)] if recursive else kids
+
+
 def meshes_dir() -> Path:
     """Directory of the shared meshes: ``$MESHMARK_TEST_MESHES`` relative to the repository root."""
     return (ROOT / os.environ.get("MESHMARK_TEST_MESHES", "../shared/meshes")).resolve()

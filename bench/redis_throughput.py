@@ -35,7 +35,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from bench.common import KEY, environment, header, md_table, mesh_path, save_json
+from bench.common import KEY, child_pids, cpu_seconds, environment, header, md_table, mesh_path, save_json
 
 REDIS_URL = os.environ.get("MESHMARK_BENCH_REDIS_URL", "redis://127.0.0.1:6379/15")
 THROUGHPUT_MESH = "beetle.off"
@@ -78,25 +78,6 @@ async def _wait_ready(runner: Any, workers: list[subprocess.Popen[bytes]], task:
                 await asyncio.sleep(0.01)
             seen.add((await runner.store.fields(job.id)).get("worker", ""))
             await runner.store.delete(job.id)
-
-
-_TICK = os.sysconf("SC_CLK_TCK")
-
-
-def _cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a live process (0 when it is gone)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except (OSError, IndexError):
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / _TICK
-
-
-def _children(pid: int) -> list[int]:
-    try:
-        return [int(p) for p in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
-    except OSError:
-        return []
 
 
 def _redis_server_pid() -> int | None:
@@ -200,7 +181,7 @@ async def _measure(args: argparse.Namespace, env: dict[str, str]) -> dict[str, A
         if backend == "in-process":
             return [os.getpid(), *pool.live_workers()]
         nodes = [w.pid for w in workers]
-        return [os.getpid(), *nodes, *(c for n in nodes for c in _children(n)),
+        return [os.getpid(), *nodes, *(c for n in nodes for c in child_pids(n)),
                 *([redis_pid] if redis_pid else [])]
 
     try:
@@ -214,10 +195,10 @@ async def _measure(args: argparse.Namespace, env: dict[str, str]) -> dict[str, A
         for _ in range(rounds):
             for name, runner in backends.items():
                 procs = pids(name)
-                before = sum(_cpu_seconds(p) for p in procs)
+                before = sum(cpu_seconds(p) for p in procs)
                 rates[name].append(await _throughput(runner, beetle, render, n_jobs,
                                                      gaps if name == "redis" else None))
-                cpu[name].append((sum(_cpu_seconds(p) for p in procs) - before) / n_jobs)
+                cpu[name].append((sum(cpu_seconds(p) for p in procs) - before) / n_jobs)
         inline, round_trips = [], {name: {"noop": [], "small": []} for name in backends}
         for _ in range(trips):
             inline.append(_inline_seconds(small))
