@@ -13,6 +13,7 @@ import json
 import os
 import platform
 import shlex
+import subprocess
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,6 +55,17 @@ SMALL_MEDIUM_MESHES = [
     "decimated-max.obj",
     "fandisk.off",
 ]
+
+
+def json_child(module: str, args: list[str], timeout: float) -> dict[str, Any]:
+    """Run ``python -m module *args`` in a fresh process from the repository root and return the
+    JSON object on the last line of its output (``{"error": last stderr line}`` when it fails)."""
+    p = subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True, cwd=ROOT,
+                       timeout=timeout, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    if p.returncode != 0:
+        return {"error": (p.stderr.strip().splitlines() or ["?"])[-1][:300]}
+    lines = p.stdout.strip().splitlines()
+    return json.loads(lines[-1]) if lines else {}
 
 
 _TICK = os.sysconf("SC_CLK_TCK")

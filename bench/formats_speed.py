@@ -36,14 +36,13 @@ import json
 import os
 import resource
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-from bench.common import ROOT, environment, md_table, mesh_path
+from bench.common import environment, json_child, md_table, mesh_path
 
 #: (label, how the mesh is made)
 SIZES = [("100k", "turbineblade.ply"), ("1M", "dragon.ply subdivided x2")]
@@ -179,19 +178,7 @@ def worker(argv: list[str]) -> None:
 
 
 def _child(args: list[str], timeout: float = 1800) -> dict[str, Any]:
-    cmd = [sys.executable, "-m", "bench.formats_speed", *args]
-    p = subprocess.run(
-        cmd,
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        timeout=timeout,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )
-    if p.returncode != 0:
-        return {"error": (p.stderr.strip().splitlines() or ["?"])[-1][:300]}
-    lines = p.stdout.strip().splitlines()
-    return json.loads(lines[-1]) if lines else {}
+    return json_child("bench.formats_speed", args, timeout)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -14,17 +14,15 @@ mesh as binary PLY and as OBJ, measured the same way in the same run.
 from __future__ import annotations
 
 import json
-import os
 import resource
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-from bench.common import KEY, ROOT, environment, header, md_table, mesh_path, save_json
+from bench.common import KEY, environment, header, json_child, md_table, mesh_path, save_json
 
 ONE_MILLION = "turbineblade.ply x2 midpoint, cut to 1M"
 SIZES = [("10k", "rocker-arm.obj"), ("100k", "turbineblade.ply"), ("1M", ONE_MILLION)]
@@ -103,18 +101,8 @@ def worker(argv: list[str]) -> None:
 
 
 def _measure(op: str, path: Path, save: Path | None = None, timeout: float = 3600) -> dict[str, Any]:
-    cmd = [sys.executable, "-m", "bench.speed", "--worker", op, str(path)] + ([str(save)] if save else [])
-    p = subprocess.run(
-        cmd,
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        timeout=timeout,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )
-    if p.returncode != 0:
-        return {"op": op, "error": (p.stderr.strip().splitlines() or ["?"])[-1][:200]}
-    return json.loads(p.stdout.strip().splitlines()[-1])
+    out = json_child("bench.speed", ["--worker", op, str(path)] + ([str(save)] if save else []), timeout)
+    return {"op": op, **out} if "error" in out else out
 
 
 def make_1m(tmp: Path, target: int = 1_000_000) -> Path:
