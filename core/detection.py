@@ -154,10 +154,12 @@ def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
                 for method, analyses in per_method.items()]
     # variant by variant across the methods: a method that reads the mark the embedder's way
     # answers before any other is decoded the attack-tolerant ways
-    for variant in VARIANTS:
-        found = [hit for d in decoders if (hit := d.try_variant(*variant)) is not None]
-        if found:
-            return min(found, key=lambda item: item[0])[1]
+    for adaptive, ranked in VARIANTS:
+        # the key-derived code of every method first (one candidate each), then the explicit lengths
+        for key_only in (True, False):
+            found = [hit for d in decoders if (hit := d.try_variant(adaptive, ranked, key_only)) is not None]
+            if found:
+                return min(found, key=lambda item: item[0])[1]
     # informed detection accepted by its p-value but without an exact CRC match
     accepted = [d.near for d in decoders if d.near is not None and d.near.detected]
     if accepted:
@@ -195,26 +197,37 @@ class _MethodDecoder:
         self.values = {adaptive: _soft_values(analyses, adaptive) for adaptive in (False, True)}
         self.cache: dict = {}
 
-    def try_variant(self, adaptive: bool, ranked: bool | None) -> tuple[float, DetectResult] | None:
-        """The first successful candidate of this variant, with its carrier error rate."""
+    def try_variant(self, adaptive: bool, ranked: bool | None, key_code_only: bool
+                    ) -> tuple[float, DetectResult] | None:
+        """The first successful candidate of this variant, with its carrier error rate: the
+        key-derived code (``key_code_only``: the paper's default mode, one candidate) or else the
+        explicit payload lengths."""
+        return self._key_code(adaptive, ranked) if key_code_only else self._explicit(adaptive, ranked)
+
+    def _key_code(self, adaptive: bool, ranked: bool | None) -> tuple[float, DetectResult] | None:
+        analyses, carriers = self.analyses, self.carriers
+        L = codeword_length(None)
+        if self.expected is not None or _same_as_auto(analyses, L, ranked):
+            return None
+        slots, raw, sign = _votes(analyses, self.values[adaptive], self.key, L, ranked, self.cache)
+        if not len(slots):
+            return None
+        msg, sums = _decode(slots, raw, sign)
+        errors = int((msg[:KEY_CODE_BITS] != self.code).sum())
+        if errors > KEY_CODE_MAX_ERRORS:
+            return None
+        dec, p_err = _posterior(slots, raw, sign, sums, msg)
+        return p_err, DetectResult(
+            detected=True, payload=bits_to_str(dec.bits[:KEY_CODE_BITS]),
+            bit_confidence=[round(float(c), 6) for c in dec.confidence[:KEY_CODE_BITS]],
+            false_positive_probability=self.fpp_total, copies=round(carriers / L, 3), carriers=carriers,
+            crc_ok=False, method=self.method, key_derived=True, bit_errors=errors,
+            p_value=binomial_tail(errors, KEY_CODE_BITS), parts=self.parts)
+
+    def _explicit(self, adaptive: bool, ranked: bool | None) -> tuple[float, DetectResult] | None:
         analyses, key, expected, carriers = self.analyses, self.key, self.expected, self.carriers
         method, parts, cache = self.method, self.parts, self.cache
         n_tries, fpp_total = self.n_tries, self.fpp_total
-        # the key-derived code first: the paper's default mode, one candidate instead of 65 lengths
-        L = codeword_length(None)
-        if expected is None and not _same_as_auto(analyses, L, ranked):
-            slots, raw, sign = _votes(analyses, self.values[adaptive], key, L, ranked, cache)
-            if len(slots):
-                msg, sums = _decode(slots, raw, sign)
-                key_errors = int((msg[:KEY_CODE_BITS] != self.code).sum())
-                if key_errors <= KEY_CODE_MAX_ERRORS:
-                    dec, p_err = _posterior(slots, raw, sign, sums, msg)
-                    return (p_err, DetectResult(
-                        detected=True, payload=bits_to_str(dec.bits[:KEY_CODE_BITS]),
-                        bit_confidence=[round(float(c), 6) for c in dec.confidence[:KEY_CODE_BITS]],
-                        false_positive_probability=fpp_total, copies=round(carriers / L, 3),
-                        carriers=carriers, crc_ok=False, method=method, key_derived=True,
-                        bit_errors=key_errors, p_value=binomial_tail(key_errors, KEY_CODE_BITS), parts=parts))
         for L, ns in self.by_L.items():
             if _same_as_auto(analyses, L, ranked):
                 continue
