@@ -15,6 +15,7 @@ from typing import Annotated, Any
 from fastapi import Depends, File, Form, Request, Response, UploadFile
 from fastapi.routing import APIRoute
 from python_multipart.multipart import parse_options_header
+from starlette.background import BackgroundTask
 from starlette.datastructures import FormData
 from starlette.exceptions import HTTPException
 from starlette.formparsers import MultiPartException, MultiPartParser
@@ -132,15 +133,15 @@ class StrictFormRoute(APIRoute):
         async def strict_handler(request: Request) -> Response:
             refusal = self.admit(request)
             if refusal is not None:
-                # the upload is not parsed.  On a kept-alive connection the answer goes out at once
-                # and uvicorn reads and drops the rest of the body itself (no ASGI round trip per
-                # chunk: the cheapest way to say no under overload).  When the client asked to
-                # close, the server closes right after answering, and closing a socket with unread
-                # data makes the kernel reset the connection (a client still sending could lose
-                # the answer), so the body is read and dropped first.
+                # the upload is read and dropped, not parsed: closing a socket with unread data
+                # makes the kernel reset the connection, and a client still sending could lose the
+                # answer.  On a kept-alive connection the answer goes out first; when the client
+                # asked to close, the server closes right after answering, so drop the body first.
                 response = problem_response(refusal, request)
                 if "close" in request.headers.get("connection", "").lower():
                     await _discard_body(request.receive)
+                else:
+                    response.background = BackgroundTask(_discard_body, request.receive)
                 return response
             return await handler(StrictFormRequest(request.scope, request.receive, fields))
 
