@@ -26,8 +26,8 @@ from core.coding import (
 from core.detection import detect_analyses
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, MeshDocument, read_mesh
-from core.mesh import Adjacency, adjacency, bbox_diagonal
-from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, vertex_labels
+from core.mesh import Adjacency, bbox_diagonal
+from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE
 from core.watermark import TOL, Analysis, analyse_methods, embed_parts, own_copy, prepare
 
 MAX_KEY_BYTES = 4096
@@ -99,10 +99,7 @@ def _analyses(doc: MeshDocument, parts: list[int], key: str | bytes, methods: li
     out: dict[str, list[Analysis]] = {m: [] for m in methods}
     for i in parts:
         v = doc.parts[i].vertices if vertices is None else vertices[i]
-        f = doc.parts[i].faces
-        adj = adjacency(f, len(v))
-        labels = vertex_labels(v, adj)
-        for m, a in analyse_methods(v, f, key, methods, adj=adj, labels=labels).items():
+        for m, a in analyse_methods(v, doc.parts[i].faces, key, methods).items():
             out[m].append(a)
     return out
 
