@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import socket
 import statistics
 import subprocess
 import sys
@@ -25,36 +24,16 @@ from pathlib import Path
 
 import httpx
 
-from bench.common import child_pids, cpu_seconds, meshes_dir
+from bench.common import MESHMARK, child_pids, cpu_seconds, free_port, meshes_dir, start_server
 from bench.load import RawClient, form_body
 
 ROOT = Path(__file__).resolve().parents[1]
-MESHMARK = str(Path(sys.executable).with_name("meshmark"))
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 class Server:
     def __init__(self, workers: int) -> None:
-        self.port = _free_port()
-        env = dict(os.environ, MESHMARK_QUEUE_SIZE="64", MESHMARK_LOG_LEVEL="warning")
-        self.proc = subprocess.Popen(
-            [MESHMARK, "serve", "--host", "127.0.0.1", "--port", str(self.port), "--workers", str(workers)],
-            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.port = free_port()
+        self.proc = start_server(self.port, {"MESHMARK_QUEUE_SIZE": "64", "MESHMARK_LOG_LEVEL": "warning"},
+                                 args=("--host", "127.0.0.1", "--workers", str(workers)))
         self.url = f"http://127.0.0.1:{self.port}"
-        deadline = time.time() + 60
-        while time.time() < deadline:
-            try:
-                if httpx.get(self.url + "/readyz", timeout=2).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.2)
-        raise RuntimeError("server did not become ready")
 
     def close(self) -> None:
         self.proc.terminate()
@@ -70,7 +49,7 @@ def _embed_http(url: str, data: bytes, name: str) -> float:
 
 def _embed_cli(path: Path, out: Path) -> float:
     t = time.perf_counter()
-    subprocess.run([MESHMARK, "embed", str(path), str(out), "--key", "bench"], check=True,
+    subprocess.run([str(MESHMARK), "embed", str(path), str(out), "--key", "bench"], check=True,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return time.perf_counter() - t
 

@@ -21,15 +21,12 @@ import argparse
 import asyncio
 import datetime as _dt
 import json
-import os
 import random
 import re
 import signal
-import socket
 import statistics
 import struct
 import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -38,7 +35,7 @@ from typing import Any
 
 import httpx
 
-from bench.common import DEFAULT_OUT, mesh_path
+from bench.common import DEFAULT_OUT, free_port, mesh_path, start_server
 from bench.hardening import record, run_info
 
 KEY = "load-test key 2f6a"
@@ -74,12 +71,6 @@ class Result:
     seconds: float
     slug: str
     correct: bool  # valid 200: byte-identical to the reference
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def tree_rss_mb(pid: int) -> float:
@@ -332,27 +323,16 @@ def main(argv: list[str] | None = None) -> int:
     base = f"http://127.0.0.1:{port}"
     log = Path(tempfile.mkstemp(prefix="meshmark-load-", suffix=".log")[1])
     env = {
-        **os.environ,
         "MESHMARK_WORKERS": str(WORKERS),
         "MESHMARK_LOG_LEVEL": "info",  # the access lines time each answer inside the app
         "MESHMARK_JOB_TIMEOUT_SECONDS": str(args.job_timeout),
     }
-    meshmark = Path(sys.executable).parent / "meshmark"
     with open(log, "wb") as out:
-        server = subprocess.Popen(
-            [str(meshmark), "serve", "--port", str(port)], env=env, stdout=out, stderr=subprocess.STDOUT
-        )
+        try:
+            server = start_server(port, env, out)
+        except RuntimeError:
+            raise SystemExit(f"server did not start: {log.read_text()}") from None
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                if httpx.get(f"{base}/readyz", timeout=1).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if server.poll() is not None or time.monotonic() > deadline:
-                raise SystemExit(f"server did not start: {log.read_text()}")
-            time.sleep(0.1)
         slots = int(
             next(
                 line.split()[1]

@@ -4,21 +4,18 @@ client library would send."""
 
 from __future__ import annotations
 
-import os
 import signal
 import socket
 import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-import httpx
 import pytest
 
-MESHMARK = Path(sys.executable).parent / "meshmark"
+from bench.common import MESHMARK, free_port, start_server
 
 
 @dataclass
@@ -32,12 +29,6 @@ class Server:
         return self.log.read_text(errors="replace")
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @contextmanager
 def serve(log: Path, **env: str) -> Iterator[Server]:
     """``meshmark serve`` with ``MESHMARK_*`` settings from ``env``; stopped (SIGTERM, then SIGKILL)
@@ -45,24 +36,14 @@ def serve(log: Path, **env: str) -> Iterator[Server]:
     if not MESHMARK.exists():
         pytest.skip(f"{MESHMARK} not installed (pip install -e .)")
     port = free_port()
-    environ = {**os.environ, "MESHMARK_WORKERS": "1", "MESHMARK_LOG_LEVEL": "info",
+    environ = {"MESHMARK_WORKERS": "1", "MESHMARK_LOG_LEVEL": "info",
                **{f"MESHMARK_{k.upper()}": v for k, v in env.items()}}
     with open(log, "wb") as out:
-        proc = subprocess.Popen([str(MESHMARK), "serve", "--port", str(port)], env=environ, stdout=out,
-                                stderr=subprocess.STDOUT)
-    server = Server(f"http://127.0.0.1:{port}", port, proc, log)
-    deadline = time.monotonic() + 60
-    while True:
         try:
-            if httpx.get(f"{server.base}/readyz", timeout=1).status_code == 200:
-                break
-        except httpx.TransportError:
-            pass
-        if proc.poll() is not None or time.monotonic() > deadline:
-            proc.kill()
-            proc.wait()
-            pytest.fail(f"server did not start: {server.text()}")
-        time.sleep(0.1)
+            proc = start_server(port, environ, out)
+        except RuntimeError:
+            pytest.fail(f"server did not start: {log.read_text(errors='replace')}")
+    server = Server(f"http://127.0.0.1:{port}", port, proc, log)
     try:
         yield server
     finally:

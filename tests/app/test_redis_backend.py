@@ -39,6 +39,7 @@ from app.jobs.redis_store import STATES, JobRecords, RedisJobStore, input_key, r
 from app.jobs.store import Job, JobResult
 from app.workers.distributed import decode_input, encode_input
 from app.workers.tasks import DetectTask, EmbedTask
+from bench.common import free_port
 from core.formats.base import Limits
 from tests.app import test_jobs as memory_jobs
 from tests.app.conftest import KEY, assert_problem, detect, make_client, wait_for, wait_job
@@ -374,15 +375,9 @@ def test_time_limit_fails_the_job_not_the_worker(redis_env, tmp_path, slow_ply, 
         worker.stop()
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @needs_redis
 def test_not_ready_while_redis_is_unreachable(redis_env, sphere_obj):
-    with make_client(workers=1, redis_url=f"redis://127.0.0.1:{_free_port()}/0") as api:
+    with make_client(workers=1, redis_url=f"redis://127.0.0.1:{free_port()}/0") as api:
         assert api.get("/healthz").status_code == 200
         body = assert_problem(api.get("/readyz"), 503, "not-ready")
         assert "Redis" in body["detail"]
@@ -396,7 +391,7 @@ def test_not_ready_while_redis_is_unreachable(redis_env, sphere_obj):
 @needs_redis
 @pytest.mark.skipif(shutil.which("redis-server") is None, reason="redis-server is not installed")
 def test_readyz_follows_a_redis_restart(redis_env, tmp_path):
-    port = _free_port()
+    port = free_port()
 
     def redis_server() -> subprocess.Popen[bytes]:
         server = subprocess.Popen(["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--save", "",
