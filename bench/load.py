@@ -267,9 +267,9 @@ def summarise(label: str, rate: float, results: list[Result], job_timeout: float
     }
 
 
-async def soak(
+async def sampled_phase(
     base: str,
-    pid: int,
+    pid: int | None,
     rate: float,
     seconds: float,
     valid: bytes,
@@ -278,8 +278,12 @@ async def soak(
     rng: random.Random,
     timeout: float,
 ) -> tuple[list[Result], list[tuple[float, float]]]:
+    """:func:`run_phase`, sampling the RSS of ``pid`` and its workers every second (none when
+    ``pid`` is None)."""
     samples: list[tuple[float, float]] = []
     start = time.perf_counter()
+    if pid is None:
+        return await run_phase(base, rate, seconds, valid, reference, poison, rng, timeout), samples
 
     async def sample() -> None:
         while True:
@@ -353,16 +357,21 @@ def main(argv: list[str] | None = None) -> int:
             flush=True,
         )
 
-        # 2. phases
-        phases = []
+        # 2. phases at 1x, 2x and 5x, then 3. the soak at 1x with the memory sampled
+        plan = [(f"{f}x", f * capacity, args.phase_seconds, None) for f in (1, 2, 5)]
+        plan.append(("soak 1x", capacity, args.soak_seconds, server.pid))
+        summaries = []
         windows: list[tuple[float, float]] = []
-        for factor in (1, 2, 5):
+        for k, (label, rate, seconds, pid) in enumerate(plan):
+            if k:
+                time.sleep(2)  # let the queue drain
             t_start = time.time()
-            results = asyncio.run(
-                run_phase(
+            results, samples = asyncio.run(
+                sampled_phase(
                     base,
-                    factor * capacity,
-                    args.phase_seconds,
+                    pid,
+                    rate,
+                    seconds,
                     valid_body,
                     reference,
                     poison_bodies,
@@ -371,28 +380,9 @@ def main(argv: list[str] | None = None) -> int:
                 )
             )
             windows.append((t_start, time.time()))
-            phases.append(summarise(f"{factor}x", factor * capacity, results, args.job_timeout))
-            print(json.dumps(phases[-1]), flush=True)
-            time.sleep(2)  # let the queue drain
-
-        # 3. soak
-        t_start = time.time()
-        soak_results, samples = asyncio.run(
-            soak(
-                base,
-                server.pid,
-                capacity,
-                args.soak_seconds,
-                valid_body,
-                reference,
-                poison_bodies,
-                rng,
-                args.job_timeout + 10,
-            )
-        )
-        windows.append((t_start, time.time()))
-        soak_summary = summarise("soak 1x", capacity, soak_results, args.job_timeout)
-        print(json.dumps(soak_summary), flush=True)
+            summaries.append(summarise(label, rate, results, args.job_timeout))
+            print(json.dumps(summaries[-1]), flush=True)
+        *phases, soak_summary = summaries
     finally:
         server.send_signal(signal.SIGTERM)
         try:
