@@ -29,6 +29,7 @@ import struct
 import subprocess
 import tempfile
 import time
+from collections.abc import Awaitable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -267,23 +268,14 @@ def summarise(label: str, rate: float, results: list[Result], job_timeout: float
     }
 
 
-async def sampled_phase(
-    base: str,
-    pid: int | None,
-    rate: float,
-    seconds: float,
-    valid: bytes,
-    reference: bytes,
-    poison: list[bytes],
-    rng: random.Random,
-    timeout: float,
-) -> tuple[list[Result], list[tuple[float, float]]]:
-    """:func:`run_phase`, sampling the RSS of ``pid`` and its workers every second (none when
-    ``pid`` is None)."""
+async def sampled_phase(phase: Awaitable[list[Result]], pid: int | None
+                        ) -> tuple[list[Result], list[tuple[float, float]]]:
+    """Await a :func:`run_phase`, sampling the RSS of ``pid`` and its workers every second (no
+    samples when ``pid`` is None)."""
     samples: list[tuple[float, float]] = []
     start = time.perf_counter()
     if pid is None:
-        return await run_phase(base, rate, seconds, valid, reference, poison, rng, timeout), samples
+        return await phase, samples
 
     async def sample() -> None:
         while True:
@@ -292,7 +284,7 @@ async def sampled_phase(
 
     sampler = asyncio.create_task(sample())
     try:
-        results = await run_phase(base, rate, seconds, valid, reference, poison, rng, timeout)
+        results = await phase
     finally:
         sampler.cancel()
     samples.append((time.perf_counter() - start, tree_rss_mb(pid)))
@@ -366,19 +358,9 @@ def main(argv: list[str] | None = None) -> int:
             if k:
                 time.sleep(2)  # let the queue drain
             t_start = time.time()
-            results, samples = asyncio.run(
-                sampled_phase(
-                    base,
-                    pid,
-                    rate,
-                    seconds,
-                    valid_body,
-                    reference,
-                    poison_bodies,
-                    rng,
-                    args.job_timeout + 10,
-                )
-            )
+            phase = run_phase(base, rate, seconds, valid_body, reference, poison_bodies, rng,
+                              args.job_timeout + 10)
+            results, samples = asyncio.run(sampled_phase(phase, pid))
             windows.append((t_start, time.time()))
             summaries.append(summarise(label, rate, results, args.job_timeout))
             print(json.dumps(summaries[-1]), flush=True)
