@@ -133,8 +133,10 @@ def _serve(args: argparse.Namespace) -> int:
     logging.basicConfig(level=settings.log_level.upper(),
                         format="%(asctime)s %(levelname)s %(name)s %(message)s")
     # access lines come from app.middleware (with the route and the duration), not uvicorn
+    # httptools and uvloop (dependencies) rather than uvicorn's pure-Python fallbacks: under
+    # overload the API process spends its time reading uploads it refuses
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=settings.log_level,
-                access_log=False)
+                access_log=False, http="httptools", loop="uvloop")
     return EXIT_OK
 
 
