@@ -70,7 +70,10 @@ class BodyLimitMiddleware:
 
 class MetricsMiddleware:
     """Counts requests by route template and status, times them, and logs one line each (the
-    route template, not the path: no job ids in metric labels, nothing from the query string)."""
+    route template, not the path: no job ids in metric labels, nothing from the query string).
+
+    The time is until the last byte of the answer was handed to the server: work after it (a
+    refused upload read and dropped in the background, see :mod:`app.forms`) does not count."""
 
     def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
         self.app, self.metrics = app, metrics
@@ -81,19 +84,22 @@ class MetricsMiddleware:
             return
         start = time.perf_counter()
         status = 500
+        answered: float | None = None
 
         async def recording_send(message: Message) -> None:
-            nonlocal status
+            nonlocal status, answered
             if message["type"] == "http.response.start":
                 status = message["status"]
             await send(message)
+            if message["type"] == "http.response.body" and not message.get("more_body", False):
+                answered = time.perf_counter()
 
         self.metrics.in_progress += 1
         try:
             await self.app(scope, receive, recording_send)
         finally:
             self.metrics.in_progress -= 1
-            elapsed = time.perf_counter() - start
+            elapsed = (answered or time.perf_counter()) - start
             route = getattr(scope.get("route"), "path", None) or "unmatched"
             self.metrics.observe_request(scope["method"], route, status, elapsed)
             client = scope.get("client") or ("-", 0)
