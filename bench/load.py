@@ -432,6 +432,10 @@ def main(argv: list[str] | None = None) -> int:
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | --- | --- |",
         *rows,
         "",
+        "Excess latency *client*: from opening the connection to the last byte of the answer, the whole "
+        "upload sent first (the load generator reads the answer after writing the request); *in the app*: "
+        "from the request reaching the app to the answer handed to the server (the access log; the refused "
+        "upload is then read and dropped in the background). "
         "Valid 200 answers were byte-identical to the reference embedding; a *valid error* is any other "
         "answer than that or a 429 `busy`. Poison answers: "
         + "; ".join(sorted({k for ph in [*phases, soak_summary] for k in ph["poison_kinds"]}))
