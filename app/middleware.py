@@ -99,7 +99,7 @@ class MetricsMiddleware:
             await self.app(scope, receive, recording_send)
         finally:
             self.metrics.in_progress -= 1
-            elapsed = (answered or time.perf_counter()) - start
+            elapsed = (time.perf_counter() if answered is None else answered) - start
             route = getattr(scope.get("route"), "path", None) or "unmatched"
             self.metrics.observe_request(scope["method"], route, status, elapsed)
             client = scope.get("client") or ("-", 0)
