@@ -1,6 +1,8 @@
 """``python -m bench <suite>``: robustness, paper, false-positives, speed, summary, or all.
 
 ``formats`` and ``fuzz-formats`` (core.formats speed and fuzzing, issue 2) write ``formats.md``.
+``identical --write FILE`` / ``--check FILE`` fingerprints every engine answer on the shared meshes
+(byte-identity across refactorings).
 
 Results go to ``--out`` (default ``bench/results``) as markdown, JSON and PNG.
 """
@@ -84,6 +86,12 @@ def parser() -> argparse.ArgumentParser:
     # jobs backend suite (issue 7): needs Redis, starts Celery workers; not part of "all"
     sub.add_parser("redis", parents=[common], help="jobs through Redis + Celery vs the in-process pool")
     sub.add_parser("http", parents=[common], help="HTTP overhead against the CLI; 1 vs 2 workers")
+    # byte-identity of every engine answer against a committed baseline (refactorings); not in "all"
+    ident = sub.add_parser("identical", parents=[common],
+                           help="fingerprint every engine answer on the shared meshes, or compare with one")
+    which = ident.add_mutually_exclusive_group(required=True)
+    which.add_argument("--write", metavar="FILE", help="record the fingerprints in FILE")
+    which.add_argument("--check", metavar="FILE", help="compare with FILE; exit 1 on any difference")
     return p
 
 
@@ -107,6 +115,10 @@ def main(argv: list[str] | None = None) -> int:
 
         print(http_service.run(Path(args.out)))
         return 0
+    if args.suite == "identical":
+        from bench import identical
+
+        return identical.run(args)
     if args.suite == "redis":
         from bench import redis_throughput
 

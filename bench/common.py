@@ -319,6 +319,13 @@ def environment() -> dict[str, Any]:
 
 
 def git_revision() -> str:
+    try:  # git itself knows worktrees (where .git is a file) and packed refs
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                             timeout=10)
+        if out.returncode == 0:
+            return out.stdout.strip()[:12]
+    except (OSError, subprocess.SubprocessError):
+        pass
     head = ROOT / ".git" / "HEAD"
     try:
         ref = head.read_text().strip()
