@@ -17,10 +17,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from app.inputs import InputError, validate_key, validate_method, validate_payload, validate_strength
 from core import api
 from core.allocator import tune_malloc
 from core.errors import MeshMarkError
+from core.options import check_key
 
 EXIT_OK, EXIT_NOT_DETECTED, EXIT_USAGE, EXIT_INTERNAL = 0, 1, 2, 3
 KEY_ENV = "MESHMARK_KEY"
@@ -61,7 +61,8 @@ def _read_key(args: argparse.Namespace) -> str:
         key = os.environ.get(KEY_ENV)
         if key is None:
             raise _UsageError(f"give the watermark key with --key, --key-file or ${KEY_ENV}")
-    return validate_key(key)
+    check_key(key)
+    return key
 
 
 def _read_mesh(path: str) -> bytes:
@@ -82,9 +83,8 @@ def _embed(args: argparse.Namespace) -> int:
     tune_malloc()
     key = _read_key(args)
     data = _read_mesh(args.input)
-    embedded = api.embed_file(data, key, filename=Path(args.input).name,
-                              payload=validate_payload(args.payload), method=validate_method(args.method),
-                              strength=validate_strength(args.strength), progress=_progress_bar("embedding"))
+    options = api.Options(key=key, payload=args.payload, method=args.method, strength=args.strength)
+    embedded = api.embed(data, options, filename=Path(args.input).name, progress=_progress_bar("embedding"))
     try:
         Path(args.output).write_bytes(embedded.data)
     except OSError as exc:
@@ -97,10 +97,8 @@ def _detect(args: argparse.Namespace) -> int:
     tune_malloc()
     key = _read_key(args)
     data = _read_mesh(args.input)
-    result = api.detect_file(data, key, filename=Path(args.input).name,
-                             payload=validate_payload(args.payload),
-                             method=args.method,
-                             progress=_progress_bar("detecting"))
+    options = api.Options(key=key, payload=args.payload, method=args.method)
+    result = api.detect(data, options, filename=Path(args.input).name, progress=_progress_bar("detecting"))
     _print_json(result.to_dict())
     return EXIT_OK if result.detected else EXIT_NOT_DETECTED
 
@@ -108,8 +106,8 @@ def _detect(args: argparse.Namespace) -> int:
 def _capacity(args: argparse.Namespace) -> int:
     tune_malloc()
     data = _read_mesh(args.input)
-    report = api.capacity_file(data, filename=Path(args.input).name, method=validate_method(args.method),
-                               strength=validate_strength(args.strength))
+    options = api.Options(method=args.method, strength=args.strength)
+    report = api.capacity(data, options, filename=Path(args.input).name)
     _print_json(report.to_dict())
     return EXIT_OK
 
@@ -226,7 +224,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         code: int = args.run(args)
-    except (_UsageError, InputError, MeshMarkError) as exc:
+    except (_UsageError, MeshMarkError) as exc:
         _fail(EXIT_USAGE, str(exc))
     except KeyboardInterrupt:
         _fail(EXIT_INTERNAL, "interrupted")

@@ -13,10 +13,12 @@ from fastapi import Depends, Form, Header, Request
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
 from app.config import Settings
-from app.inputs import KEY_HEADER_SCHEMA, KEY_SCHEMA, InputError, key_from_header, validate_key
+from app.inputs import KEY_HEADER_SCHEMA, KEY_SCHEMA, key_from_header
 from app.jobs import JobStore, Runner
 from app.problems import BAD_FORM, NOT_READY, UNAUTHORIZED, ProblemError
 from app.workers.pool import WorkerPool
+from core.errors import PayloadError
+from core.options import MAX_KEY_CHARS, check_key
 
 
 async def get_settings(request: Request) -> Settings:
@@ -71,8 +73,8 @@ async def require_caller(
 
 
 async def watermark_key(
-    key: Annotated[str | None, Form(description="Secret watermark key, 1-1024 characters, no control "
-                                    "characters. Give it here or in the X-Watermark-Key header: "
+    key: Annotated[str | None, Form(description=f"Secret watermark key, 1-{MAX_KEY_CHARS} characters, no "
+                                    "control characters. Give it here or in the X-Watermark-Key header: "
                                     "exactly one of the two.", json_schema_extra=KEY_SCHEMA)] = None,
     x_watermark_key: Annotated[str | None, Header(description="The watermark key, instead of the "
                                                   "`key` form field: its UTF-8 bytes (the pattern "
@@ -80,14 +82,20 @@ async def watermark_key(
                                                   json_schema_extra=KEY_HEADER_SCHEMA)] = None,
 ) -> str:
     """The watermark key from the form field or the header (exactly one of them)."""
+    if key is not None and x_watermark_key is not None:
+        raise ProblemError(BAD_FORM, "give the key once: the form field 'key' or the header X-Watermark-Key")
+    if x_watermark_key is not None:
+        key = key_from_header(x_watermark_key)
+        if key is None:
+            raise ProblemError(BAD_FORM, "the X-Watermark-Key header must be UTF-8")
+    if not key:
+        raise ProblemError(BAD_FORM, "a watermark key is required (form field 'key' or header "
+                           "X-Watermark-Key)")
     try:
-        if key is not None and x_watermark_key is not None:
-            raise InputError("give the key once: the form field 'key' or the header X-Watermark-Key")
-        if x_watermark_key is not None:
-            return validate_key(key_from_header(x_watermark_key))
-        return validate_key(key)
-    except InputError as exc:
+        check_key(key)
+    except PayloadError as exc:
         raise ProblemError(BAD_FORM, str(exc)) from None
+    return key
 
 
 WatermarkKey = Annotated[str, Depends(watermark_key)]

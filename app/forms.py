@@ -22,17 +22,12 @@ from starlette.formparsers import MultiPartException, MultiPartParser
 from starlette.types import Receive
 
 from app.deps import SettingsDep, WatermarkKey
-from app.inputs import (
-    PAYLOAD_SCHEMA,
-    STRENGTH_SCHEMA,
-    InputError,
-    validate_method,
-    validate_payload,
-    validate_strength,
-)
+from app.inputs import PAYLOAD_SCHEMA, STRENGTH_SCHEMA
 from app.problems import BAD_FORM, BUSY, ProblemError, problem_response
 from app.workers.tasks import CapacityTask, DetectTask, EmbedTask
-from core.api import DEFAULT_METHOD, METHODS
+from core.coding import MAX_PAYLOAD_BITS
+from core.errors import PayloadError
+from core.options import DEFAULT_METHOD, DEFAULT_STRENGTH, MAX_STRENGTH, METHODS, Options
 
 #: text fields of one form (key, payload, method, strength and a few unknown ones, which are ignored)
 MAX_FORM_FIELDS = 16
@@ -186,20 +181,22 @@ class PooledFormRoute(StrictFormRoute):
         return None
 
 
-def _check(value: Any, validate: Callable[..., Any], **kwargs: Any) -> Any:
+def _options(**fields: Any) -> Options:
+    """The engine's options from the form's fields; a refusal is a ``bad-form`` problem."""
     try:
-        return validate(value, **kwargs)
-    except InputError as exc:
+        return Options(**fields)
+    except PayloadError as exc:
         raise ProblemError(BAD_FORM, str(exc)) from None
 
 
 MeshFile = Annotated[UploadFile, File(description="The mesh: OBJ, PLY, STL, OFF, GLB, glTF or 3DS.")]
-Payload = Annotated[str | None, Form(description="Bitstring of 1-256 '0'/'1'. Embed: the payload "
-                                     "(default: a 32-bit code derived from the key). Detect: the "
+Payload = Annotated[str | None, Form(description=f"Bitstring of 1-{MAX_PAYLOAD_BITS} '0'/'1'. Embed: the "
+                                     "payload (default: a 32-bit code derived from the key). Detect: the "
                                      "expected payload, to get bit errors and a p-value.",
                                      json_schema_extra=PAYLOAD_SCHEMA)]
-Strength = Annotated[float | None, Form(description="Boundary margin in (0, 1], as a fraction of the local "
-                                        "neighbourhood scale (engine default 0.07 if omitted).",
+Strength = Annotated[float | None, Form(description=f"Boundary margin in (0, {MAX_STRENGTH:g}], as a "
+                                        "fraction of the local neighbourhood scale (engine default "
+                                        f"{DEFAULT_STRENGTH:g} if omitted).",
                                         json_schema_extra=STRENGTH_SCHEMA)]
 _METHOD_SCHEMA = {"enum": list(METHODS)}
 
@@ -212,11 +209,9 @@ async def embed_task(
     method: Annotated[str, Form(json_schema_extra=_METHOD_SCHEMA)] = DEFAULT_METHOD,
     strength: Strength = None,
 ) -> EmbedTask:
-    return EmbedTask(
-        data=await mesh.read(), key=key, filename=mesh.filename,
-        payload=_check(payload, validate_payload), method=_check(method, validate_method),
-        strength=_check(strength, validate_strength), limits=settings.limits(),
-    )
+    data = await mesh.read()
+    options = _options(key=key, payload=payload, method=method, strength=strength)
+    return EmbedTask(data=data, options=options, filename=mesh.filename, limits=settings.limits())
 
 
 async def detect_task(
@@ -227,12 +222,9 @@ async def detect_task(
     method: Annotated[str | None, Form(description="Method to look for (default: both).",
                                        json_schema_extra=_METHOD_SCHEMA)] = None,
 ) -> DetectTask:
-    return DetectTask(
-        data=await mesh.read(), key=key, filename=mesh.filename,
-        payload=_check(payload, validate_payload),
-        method=None if method is None else _check(method, validate_method),
-        limits=settings.limits(),
-    )
+    data = await mesh.read()
+    options = _options(key=key, payload=payload, method=method)
+    return DetectTask(data=data, options=options, filename=mesh.filename, limits=settings.limits())
 
 
 async def capacity_task(
@@ -241,10 +233,9 @@ async def capacity_task(
     method: Annotated[str, Form(json_schema_extra=_METHOD_SCHEMA)] = DEFAULT_METHOD,
     strength: Strength = None,
 ) -> CapacityTask:
-    return CapacityTask(
-        data=await mesh.read(), filename=mesh.filename, method=_check(method, validate_method),
-        strength=_check(strength, validate_strength), limits=settings.limits(),
-    )
+    data = await mesh.read()
+    options = _options(method=method, strength=strength)
+    return CapacityTask(data=data, options=options, filename=mesh.filename, limits=settings.limits())
 
 
 EmbedForm = Annotated[EmbedTask, Depends(embed_task)]

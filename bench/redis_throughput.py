@@ -151,15 +151,17 @@ async def _measure(args: argparse.Namespace, env: dict[str, str]) -> dict[str, A
     from app.results import embedded_result
     from app.workers.pool import WorkerPool
     from app.workers.tasks import EmbedTask
+    from core.options import Options
 
     n_workers = args.jobs
     n_jobs = 16 if args.quick else 60
     rounds = 2 if args.quick else 9
     trips = 10 if args.quick else 30
-    beetle = EmbedTask(data=mesh_path(THROUGHPUT_MESH).read_bytes(), key=KEY, filename=THROUGHPUT_MESH)
+    beetle = EmbedTask(data=mesh_path(THROUGHPUT_MESH).read_bytes(), options=Options(key=KEY),
+                       filename=THROUGHPUT_MESH)
     sphere = trimesh.creation.icosphere(subdivisions=4).export(file_type="obj").encode()
-    small = EmbedTask(data=sphere, key=KEY, filename="sphere.obj")
-    noop = EmbedTask(data=b"", key=KEY, filename="empty.obj")
+    small = EmbedTask(data=sphere, options=Options(key=KEY), filename="sphere.obj")
+    noop = EmbedTask(data=b"", options=Options(key=KEY), filename="empty.obj")
 
     def render(value: Any) -> Any:
         return embedded_result(value, THROUGHPUT_MESH)

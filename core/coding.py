@@ -20,7 +20,6 @@ from math import comb, log
 
 import numpy as np
 
-from core.errors import PayloadError
 from core.hashing import derive, derive_bytes
 
 MAX_PAYLOAD_BITS = 256
@@ -33,13 +32,6 @@ _G = np.array(
 )
 _MESSAGES = ((np.arange(16)[:, None] >> np.arange(3, -1, -1)) & 1).astype(np.uint8)  # (16, 4)
 _CODEWORDS = (_MESSAGES @ _G) % 2  # (16, 7)
-
-
-def parse_payload(text: str) -> np.ndarray:
-    """Bits of a payload given as a string of '0'/'1' (1-256 characters)."""
-    if not isinstance(text, str) or not 1 <= len(text) <= MAX_PAYLOAD_BITS or set(text) - {"0", "1"}:
-        raise PayloadError(f"payload must be a string of 1 to {MAX_PAYLOAD_BITS} characters '0' or '1'")
-    return np.frombuffer(text.encode(), np.uint8) - ord("0")
 
 
 def bits_to_str(bits: np.ndarray) -> str:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.api import DetectResult
+from core.analysis import Analysis
 from core.coding import (
     CRC_BITS,
     KEY_CODE_BITS,
@@ -28,7 +28,8 @@ from core.coding import (
     soft_decode,
     whitening,
 )
-from core.watermark import HASHED_FROM, Analysis, assign_slots_all
+from core.reports import DetectResult
+from core.slots import assign_slots, ranked_by_default
 
 #: the key-derived code is accepted with at most this many bit errors out of 32 (P = 7.7e-9)
 KEY_CODE_MAX_ERRORS = 1
@@ -77,7 +78,8 @@ def _votes(analyses: list[Analysis], values: list[np.ndarray], key: str | bytes,
     cache = {} if cache is None else cache
     key_slots = ("slots", L, ranked)
     if key_slots not in cache:
-        cache[key_slots] = np.concatenate(assign_slots_all(analyses, L, ranked, cache)) if analyses \
+        hashes = [a.slot_hash for a in analyses]
+        cache[key_slots] = np.concatenate(assign_slots(hashes, L, ranked, cache)) if analyses \
             else np.zeros(0, np.int64)
     s = cache[key_slots]
     if len(s) == 0:
@@ -132,7 +134,7 @@ VARIANTS = ((False, None), (True, None), (True, True), (True, False))
 
 def _same_as_auto(analyses: list[Analysis], L: int, ranked: bool | None) -> bool:
     """A forced slot assignment that equals the automatic one for every part (already tried)."""
-    return ranked is not None and (sum(len(a.carriers) for a in analyses) < HASHED_FROM * L) == ranked
+    return ranked is not None and ranked_by_default(sum(len(a.carriers) for a in analyses), L) == ranked
 
 
 def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,

@@ -11,13 +11,23 @@ _M2 = np.uint64(0x94D049BB133111EB)
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 
 
+def finalise64(x: np.ndarray) -> np.ndarray:
+    """splitmix64's finaliser, a bijective avalanche mix of uint64, applied to ``x`` in place.
+
+    Returns ``x`` (a new value when ``x`` is a numpy scalar).
+    """
+    x ^= x >> np.uint64(30)
+    x *= _M1
+    x ^= x >> np.uint64(27)
+    x *= _M2
+    x ^= x >> np.uint64(31)
+    return x
+
+
 def mix64(x: np.ndarray) -> np.ndarray:
-    """Bijective avalanche mix of uint64 values (splitmix64 finaliser), element-wise."""
+    """One splitmix64 output per uint64 value: the golden-ratio increment, then the finaliser."""
     with np.errstate(over="ignore"):
-        z = np.asarray(x, dtype=np.uint64) + _GOLDEN
-        z = (z ^ (z >> np.uint64(30))) * _M1
-        z = (z ^ (z >> np.uint64(27))) * _M2
-        return z ^ (z >> np.uint64(31))
+        return finalise64(np.asarray(x, dtype=np.uint64) + _GOLDEN)
 
 
 def combine(a: np.ndarray, b: np.ndarray | int) -> np.ndarray:

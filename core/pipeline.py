@@ -2,57 +2,29 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 
-from core.api import (
-    DEFAULT_METHOD,
-    METHODS,
-    CapacityReport,
-    DetectResult,
-    EmbeddedFile,
-    EmbedReport,
-    Progress,
-)
-from core.coding import (
-    CRC_BITS,
-    KEY_CODE_BITS,
-    MAX_PAYLOAD_BITS,
-    codeword_length,
-    encode,
-    parse_payload,
-)
+from core.analysis import Analysis, analyse_methods, prepare
+from core.coding import KEY_CODE_BITS, MAX_PAYLOAD_BITS, codeword_length, encode
 from core.detection import detect_analyses
+from core.embedding import embed_parts
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
-from core.formats import DEFAULT_LIMITS, MeshDocument, read_mesh
+from core.formats import DEFAULT_LIMITS, Limits, MeshDocument, MeshPart, read_mesh, weld
 from core.mesh import Adjacency, bbox_diagonal
+from core.options import DEFAULT_METHOD, Options
+from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
+from core.slots import own_copy
 from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE
-from core.watermark import TOL, Analysis, analyse_methods, embed_parts, own_copy, prepare
+from core.tolerances import TOL
 
-MAX_KEY_BYTES = 4096
 #: carriers per codeword bit that capacity asks for (skipped carriers and slot collisions)
 CAPACITY_MARGIN = 1.5
-#: displacement caps tried in turn (multiples of the defaults in core.watermark.Tolerances)
+#: displacement caps tried in turn (multiples of the defaults in core.tolerances.Tolerances)
 CAP_FACTORS = (1.0, 2.0, 4.0)
-
-
-def _check_key(key: str | bytes) -> None:
-    raw = key.encode("utf-8") if isinstance(key, str) else key
-    if not isinstance(raw, bytes | bytearray) or not 1 <= len(raw) <= MAX_KEY_BYTES:
-        raise PayloadError(f"key must be 1 to {MAX_KEY_BYTES} bytes")
-
-
-def _check_method(method: str) -> None:
-    if method not in METHODS:
-        raise PayloadError(f"method must be one of {', '.join(METHODS)}")
-
-
-def _strength(strength: float | None) -> float:
-    s = TOL.strength if strength is None else float(strength)
-    if not np.isfinite(s) or not 0.0 < s <= 1.0:
-        raise PayloadError("strength must be in (0, 1]")
-    return s
 
 
 #: a face has no area when |cross| <= this x (bounding-box diagonal)^2 (collinear corners)
@@ -94,12 +66,11 @@ def _usable_parts(doc: MeshDocument) -> list[int]:
     return idx
 
 
-def _analyses(doc: MeshDocument, parts: list[int], key: str | bytes, methods: list[str],
-              vertices: list[np.ndarray] | None = None) -> dict[str, list[Analysis]]:
+def _analyses(doc: MeshDocument, parts: list[int], key: str | bytes,
+              methods: Sequence[str]) -> dict[str, list[Analysis]]:
     out: dict[str, list[Analysis]] = {m: [] for m in methods}
     for i in parts:
-        v = doc.parts[i].vertices if vertices is None else vertices[i]
-        for m, a in analyse_methods(v, doc.parts[i].faces, key, methods).items():
+        for m, a in analyse_methods(doc.parts[i].vertices, doc.parts[i].faces, key, methods).items():
             out[m].append(a)
     return out
 
@@ -163,8 +134,6 @@ class _ArrayDoc(MeshDocument):
     format = "arrays"
 
     def __init__(self, meshes: list[tuple[np.ndarray, np.ndarray]]) -> None:
-        from core.formats import MeshPart, weld
-
         parts = []
         for k, (v, f) in enumerate(meshes):
             v = np.asarray(v, np.float64).reshape(-1, 3)
@@ -178,43 +147,87 @@ class _ArrayDoc(MeshDocument):
         super().__init__(b"", parts)
 
 
-def embed_mesh(vertices, faces, key: str | bytes, *, payload: str | None = None,
-               method: str = DEFAULT_METHOD, strength: float | None = None):
+def _no_progress(fraction: float) -> None:
+    pass
+
+
+def embed_mesh(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, *, payload: str | None = None,
+               method: str = DEFAULT_METHOD, strength: float | None = None) -> tuple[np.ndarray, EmbedReport]:
+    """Array-level embedding.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float ndarray
+        Positions; not modified.
+    faces : (m, 3) int ndarray
+        Triangles into ``vertices``.
+    key, payload, method, strength
+        As in :class:`~core.options.Options`.
+
+    Returns
+    -------
+    new_vertices : (n, 3) float64 ndarray
+        The positions with the carriers moved (positions that were welded together move together).
+    report : EmbedReport
+    """
+    options = Options(key=key, payload=payload, method=method, strength=strength)
     doc = _ArrayDoc([(vertices, faces)])
-    new, rep, _ = _embed_doc(doc, key, payload, method, strength, None)
+    new, rep, _ = _embed_doc(doc, options, _no_progress)
     part = doc.parts[0]
     return new[0][part.slot_to_vertex], rep
 
 
-def detect_mesh(meshes, key: str | bytes, *, payload: str | None = None,
+def detect_mesh(meshes: list[tuple[np.ndarray, np.ndarray]], key: str | bytes, *, payload: str | None = None,
                 method: str | None = None) -> DetectResult:
-    return _detect_doc(_ArrayDoc(list(meshes)), key, payload, method)
+    """Array-level blind detection over one or several ``(vertices (n, 3), faces (m, 3))`` meshes."""
+    options = Options(key=key, payload=payload, method=method)
+    return _detect_doc(_ArrayDoc(list(meshes)), options)
 
 
-def embed_file(data: bytes, key: str | bytes, *, filename: str | None = None, payload: str | None = None,
-               method: str = DEFAULT_METHOD, strength: float | None = None, limits=None,
-               progress: Progress | None = None) -> EmbeddedFile:
-    _check_key(key)
-    _check_method(method)
-    _strength(strength)
-    if payload is not None:
-        parse_payload(payload)
-    report = progress or (lambda f: None)
-    doc = read_mesh(data, filename, limits or DEFAULT_LIMITS)
+def embed(data: bytes, options: Options, *, filename: str | None = None, limits: Limits = DEFAULT_LIMITS,
+          progress: Progress | None = None) -> EmbeddedFile:
+    """Watermark a mesh file: the same format and encoding, only moved coordinates changed.
+
+    Parameters
+    ----------
+    data : bytes
+        The whole file.
+    options : Options
+        ``key`` (required), ``payload``, ``method``, ``strength``.
+    filename : str, optional
+        The client's file name, only to cross-check the extension.
+    limits : Limits
+        Checked before anything proportional to the file is allocated.
+    progress : callable, optional
+        Called with the fraction done.
+
+    Raises
+    ------
+    MeshMarkError
+        A subclass for every input the engine refuses (see :mod:`core.errors`).
+    """
+    options.secret  # noqa: B018 -- no key is a PayloadError before the file is parsed
+    report = progress or _no_progress
+    doc = read_mesh(data, filename, limits)
     report(0.1)
-    new, rep, dec = _embed_doc(doc, key, payload, method, strength, report)
+    new, rep, dec = _embed_doc(doc, options, report)
     out = doc.write(new, decimals=dec) if dec is not None else doc.write(new)
     report(1.0)
     return EmbeddedFile(out, rep, doc.format, doc.media_type, doc.extension)
 
 
-def _embed_doc(doc: MeshDocument, key: str | bytes, payload: str | None, method: str,
-               strength: float | None, report: Progress | None):
-    _check_key(key)
-    _check_method(method)
-    s = _strength(strength)
-    bits = parse_payload(payload) if payload is not None else None
-    report = report or (lambda f: None)
+def embed_file(data: bytes, key: str | bytes, *, filename: str | None = None, payload: str | None = None,
+               method: str = DEFAULT_METHOD, strength: float | None = None, limits: Limits | None = None,
+               progress: Progress | None = None) -> EmbeddedFile:
+    """:func:`embed` with the options as keywords."""
+    options = Options(key=key, payload=payload, method=method, strength=strength)
+    return embed(data, options, filename=filename, limits=limits or DEFAULT_LIMITS, progress=progress)
+
+
+def _embed_doc(doc: MeshDocument, options: Options,
+               report: Progress) -> tuple[list[np.ndarray], EmbedReport, int | None]:
+    key = options.secret
+    method, s, bits = options.embed_method, options.margin, options.payload_bits
     parts = _usable_parts(doc)
     codeword = encode(key, bits)
     L = len(codeword)
@@ -230,7 +243,7 @@ def _embed_doc(doc: MeshDocument, key: str | bytes, payload: str | None, method:
         tol = replace(TOL, coarse_move=TOL.coarse_move * factor, max_local_move=TOL.max_local_move * factor,
                       max_move=TOL.max_move * factor)
         vs, stats, final = embed_parts(meshes, key, codeword, method, s, tol=tol, prepared=prepared,
-                                       quantize=lambda x, d=dec: doc.quantize(x, d))
+                                       quantize=partial(doc.quantize, decimals=dec))
         for k, i in enumerate(parts):
             new[i] = vs[k]
         carriers = sum(st.carriers for st in stats)
@@ -243,9 +256,9 @@ def _embed_doc(doc: MeshDocument, key: str | bytes, payload: str | None, method:
                 f"{'' if bits is None else 'CRC-32 and '}Hamming(7,4)) at strength {s}"
                 + _no_carrier_hint(carriers),
                 carriers=carriers, needed=L)
-        # the embedder's last analysis is the detector's view of the stego mesh (see embed_arrays)
-        # and so is every part with room for a copy of its own (a mesh extracted from the file)
-        groups = [final] + [[a] for a in final if len(final) > 1 and own_copy(a, L)]
+        # the embedder's last analysis is the detector's view of the stego mesh, and so is every
+        # part with room for a copy of its own (a mesh extracted from the file)
+        groups = [final] + [[a] for a in final if len(final) > 1 and own_copy(a.slot_hash, L)]
         ok = all(_reads_back(detect_analyses({method: g}, key, bits), bits) for g in groups)
         if ok or attempt == len(tries) - 1:
             break
@@ -269,29 +282,35 @@ def _embed_doc(doc: MeshDocument, key: str | bytes, payload: str | None, method:
     return new, rep, dec
 
 
-def detect_file(data: bytes, key: str | bytes, *, filename: str | None = None, payload: str | None = None,
-                method: str | None = None, limits=None, progress: Progress | None = None) -> DetectResult:
-    _check_key(key)
-    if method is not None:
-        _check_method(method)
-    if payload is not None:
-        parse_payload(payload)
-    report = progress or (lambda f: None)
-    doc = read_mesh(data, filename, limits or DEFAULT_LIMITS)
+def detect(data: bytes, options: Options, *, filename: str | None = None, limits: Limits = DEFAULT_LIMITS,
+           progress: Progress | None = None) -> DetectResult:
+    """Blind detection from the file and the key alone.
+
+    ``options``: ``key`` (required), ``payload`` (expected: adds bit errors and a p-value),
+    ``method`` (``None`` tries every method).  The other parameters are those of :func:`embed`.
+    "No watermark" is a result (``detected=False``), not an exception.
+    """
+    options.secret  # noqa: B018 -- no key is a PayloadError before the file is parsed
+    report = progress or _no_progress
+    doc = read_mesh(data, filename, limits)
     report(0.2)
-    res = _detect_doc(doc, key, payload, method)
+    res = _detect_doc(doc, options)
     report(1.0)
     return res
 
 
-def _detect_doc(doc: MeshDocument, key: str | bytes, payload: str | None, method: str | None) -> DetectResult:
-    _check_key(key)
-    if method is not None:
-        _check_method(method)
-    bits = parse_payload(payload) if payload is not None else None
+def detect_file(data: bytes, key: str | bytes, *, filename: str | None = None, payload: str | None = None,
+                method: str | None = None, limits: Limits | None = None,
+                progress: Progress | None = None) -> DetectResult:
+    """:func:`detect` with the options as keywords."""
+    options = Options(key=key, payload=payload, method=method)
+    return detect(data, options, filename=filename, limits=limits or DEFAULT_LIMITS, progress=progress)
+
+
+def _detect_doc(doc: MeshDocument, options: Options) -> DetectResult:
+    key = options.secret
     parts = _usable_parts(doc)
-    methods = [method] if method else list(METHODS)
-    return detect_analyses(_analyses(doc, parts, key, methods), key, bits)
+    return detect_analyses(_analyses(doc, parts, key, options.detect_methods), key, options.payload_bits)
 
 
 def _largest_payload(carriers: float) -> int:
@@ -302,20 +321,24 @@ def _largest_payload(carriers: float) -> int:
     return 0
 
 
-def capacity_file(data: bytes, *, filename: str | None = None, method: str = DEFAULT_METHOD,
-                  strength: float | None = None, limits=None) -> CapacityReport:
-    _check_method(method)
-    s = _strength(strength)
-    doc = read_mesh(data, filename, limits or DEFAULT_LIMITS)
+#: capacity is measured with this key: the carrier count hardly depends on the key
+_CAPACITY_KEY = b"meshmark-capacity-probe"
+
+
+def capacity(data: bytes, options: Options, *, filename: str | None = None,
+             limits: Limits = DEFAULT_LIMITS) -> CapacityReport:
+    """Carriers and payload room of a mesh file, without embedding (``options``: ``method`` and
+    ``strength``; the key is not used)."""
+    method, s = options.embed_method, options.margin
+    doc = read_mesh(data, filename, limits)
     parts = _usable_parts(doc)
-    key = b"meshmark-capacity-probe"
     carriers = 0
     new = [p.vertices.copy() for p in doc.parts]
     info = []
     rng = np.random.default_rng(0)
     cw = rng.integers(0, 2, codeword_length(None)).astype(np.uint8)
-    vs, stats, _ = embed_parts([(doc.parts[i].vertices, doc.parts[i].faces) for i in parts], key, cw, method,
-                               s, quantize=doc.quantize)
+    vs, stats, _ = embed_parts([(doc.parts[i].vertices, doc.parts[i].faces) for i in parts], _CAPACITY_KEY,
+                               cw, method, s, quantize=doc.quantize)
     for k, i in enumerate(parts):
         new[i] = vs[k]
         carriers += stats[k].carriers
@@ -330,4 +353,8 @@ def capacity_file(data: bytes, *, filename: str | None = None, method: str = DEF
                           expected_rms_displacement=rms, expected_max_displacement=mx, parts=info)
 
 
-__all__ = ["embed_file", "detect_file", "capacity_file", "CRC_BITS"]
+def capacity_file(data: bytes, *, filename: str | None = None, method: str = DEFAULT_METHOD,
+                  strength: float | None = None, limits: Limits | None = None) -> CapacityReport:
+    """:func:`capacity` with the options as keywords."""
+    options = Options(method=method, strength=strength)
+    return capacity(data, options, filename=filename, limits=limits or DEFAULT_LIMITS)

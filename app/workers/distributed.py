@@ -32,7 +32,8 @@ from app.problems import INTERNAL, TIMED_OUT, WORKER_FAILED, ProblemError, probl
 from app.results import embedded_result, json_result
 from app.workers.tasks import DetectTask, EmbedTask, Task, ThrottledProgress
 from core.errors import MeshMarkError
-from core.formats.base import Limits
+from core.formats import Limits
+from core.options import Options
 
 log = logging.getLogger("meshmark.workers")
 
@@ -44,19 +45,18 @@ class JobCancelled(Exception):
 
 
 def encode_input(task: Task) -> bytes:
-    """The input blob: the options as one line of JSON, then the mesh bytes as they were uploaded."""
-    options = {k: v for k, v in asdict(task).items() if k not in ("data", "limits")}
-    options["kind"] = task.kind
-    options["limits"] = asdict(task.limits) if task.limits is not None else None
-    return json.dumps(options, separators=(",", ":")).encode() + b"\n" + task.data
+    """The input blob: the kind, file name, options and limits as one line of JSON, then the mesh
+    bytes as they were uploaded."""
+    header = {"kind": task.kind, "filename": task.filename, "options": asdict(task.options),
+              "limits": asdict(task.limits)}
+    return json.dumps(header, separators=(",", ":")).encode() + b"\n" + task.data
 
 
 def decode_input(blob: bytes) -> EmbedTask | DetectTask:
     header, _, data = blob.partition(b"\n")
-    options: dict[str, Any] = json.loads(header)
-    kind = options.pop("kind")
-    limits = options.pop("limits")
-    return _TASKS[kind](data=data, limits=Limits(**limits) if limits else None, **options)
+    fields: dict[str, Any] = json.loads(header)
+    return _TASKS[fields["kind"]](data=data, options=Options(**fields["options"]),
+                                  filename=fields["filename"], limits=Limits(**fields["limits"]))
 
 
 def render(task: EmbedTask | DetectTask, value: Any) -> JobResult:

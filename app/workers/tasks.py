@@ -24,7 +24,7 @@ from typing import Any
 from core import api
 from core.allocator import tune_malloc
 from core.errors import MeshMarkError
-from core.formats.base import Limits
+from core.formats import DEFAULT_LIMITS, Limits
 
 _channel: Connection | None = None
 
@@ -52,51 +52,55 @@ class WorkerBug(Exception):
 @dataclass(frozen=True)
 class EmbedTask:
     data: bytes
-    key: str
+    options: api.Options
     filename: str | None = None
-    payload: str | None = None
-    method: str = api.DEFAULT_METHOD
-    strength: float | None = None
-    limits: Limits | None = None
+    limits: Limits = DEFAULT_LIMITS
 
     kind = "embed"
 
+    @property
+    def key(self) -> str | None:
+        return _text_key(self.options)
+
     def run(self, progress: api.Progress) -> api.EmbeddedFile:
-        return api.embed_file(self.data, self.key, filename=self.filename, payload=self.payload,
-                              method=self.method, strength=self.strength, limits=self.limits,
-                              progress=progress)
+        return api.embed(self.data, self.options, filename=self.filename, limits=self.limits,
+                         progress=progress)
 
 
 @dataclass(frozen=True)
 class DetectTask:
     data: bytes
-    key: str
+    options: api.Options
     filename: str | None = None
-    payload: str | None = None
-    method: str | None = None
-    limits: Limits | None = None
+    limits: Limits = DEFAULT_LIMITS
 
     kind = "detect"
 
+    @property
+    def key(self) -> str | None:
+        return _text_key(self.options)
+
     def run(self, progress: api.Progress) -> api.DetectResult:
-        return api.detect_file(self.data, self.key, filename=self.filename, payload=self.payload,
-                               method=self.method, limits=self.limits, progress=progress)
+        return api.detect(self.data, self.options, filename=self.filename, limits=self.limits,
+                          progress=progress)
 
 
 @dataclass(frozen=True)
 class CapacityTask:
     data: bytes
+    options: api.Options
     filename: str | None = None
-    method: str = api.DEFAULT_METHOD
-    strength: float | None = None
-    limits: Limits | None = None
+    limits: Limits = DEFAULT_LIMITS
 
     kind = "capacity"
     key = None
 
     def run(self, progress: api.Progress) -> api.CapacityReport:
-        return api.capacity_file(self.data, filename=self.filename, method=self.method,
-                                 strength=self.strength, limits=self.limits)
+        return api.capacity(self.data, self.options, filename=self.filename, limits=self.limits)
+
+
+def _text_key(options: api.Options) -> str | None:
+    return options.key if isinstance(options.key, str) else None
 
 
 Task = EmbedTask | DetectTask | CapacityTask

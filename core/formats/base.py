@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.errors import LimitExceededError, MeshFormatError
+from core.hashing import finalise64
 
 
 @dataclass(frozen=True)
@@ -60,20 +61,6 @@ class MeshPart:
     slot_to_vertex: np.ndarray = field(repr=False)
 
 
-_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
-_MIX2 = np.uint64(0x94D049BB133111EB)
-
-
-def _mix(x: np.ndarray) -> np.ndarray:
-    """splitmix64's finalizer, a bijection of uint64 (in place)."""
-    x ^= x >> np.uint64(30)
-    x *= _MIX1
-    x ^= x >> np.uint64(27)
-    x *= _MIX2
-    x ^= x >> np.uint64(31)
-    return x
-
-
 def _unique_rows(pos: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """Distinct rows of a C-contiguous ``(k, 3)`` float64 array, compared bit for bit.
 
@@ -90,11 +77,11 @@ def _unique_rows(pos: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """
     k = len(pos)
     bits = pos.view(np.uint64)
-    h = _mix(bits[:, 0].copy())
+    h = finalise64(bits[:, 0].copy())
     h ^= bits[:, 1]
-    h = _mix(h)
+    h = finalise64(h)
     h ^= bits[:, 2]
-    h = _mix(h)
+    h = finalise64(h)
     if k < 2 or np.all(np.diff(np.sort(h)) != 0):
         return np.arange(k, dtype=np.int64), np.arange(k, dtype=np.int64)  # all rows differ
     order = np.argsort(h)

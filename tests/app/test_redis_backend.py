@@ -41,6 +41,7 @@ from app.workers.distributed import decode_input, encode_input
 from app.workers.tasks import DetectTask, EmbedTask
 from bench.common import free_port
 from core.formats.base import Limits
+from core.options import Options
 from tests.app import test_jobs as memory_jobs
 from tests.app.conftest import KEY, assert_problem, detect, make_client, wait_for, wait_job
 
@@ -75,9 +76,9 @@ needs_redis = pytest.mark.skipif(_SKIP is not None, reason=_SKIP or "")
 
 def test_input_blob_round_trip():
     limits = Limits(max_bytes=10, max_vertices=20, max_faces=30, max_meshes=1, max_json_bytes=5)
-    for task in (EmbedTask(data=b"OFF\n\x00\xff bytes", key="k\u00e9y \u2603", filename="a b.off",
-                           payload="101", method="planes", strength=0.2, limits=limits),
-                 DetectTask(data=b"", key="k", method=None, limits=None)):
+    options = Options(key="k\u00e9y \u2603", payload="101", method="planes", strength=0.2)
+    for task in (EmbedTask(data=b"OFF\n\x00\xff bytes", filename="a b.off", limits=limits, options=options),
+                 DetectTask(data=b"", options=Options(key="k", method=None))):
         assert decode_input(encode_input(task)) == task
 
 

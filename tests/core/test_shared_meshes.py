@@ -69,7 +69,7 @@ def test_each_mesh_of_a_multi_mesh_file_decodes_alone() -> None:
 
 def capacity_file_part(part) -> int:
     """Distinct slot labels of a part's carriers under the test key (what a copy of its own needs)."""
-    from core.watermark import analyse
+    from core.analysis import analyse
 
     return int(np.unique(analyse(part.vertices, part.faces, "truck", "ellipsoids").slot_hash).size)
 

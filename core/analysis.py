@@ -1,0 +1,167 @@
+"""The detector's view of a mesh: its carriers under a key, their boundaries and statistics.
+
+A carrier ``i`` (chosen by :mod:`core.sync`) is described by its neighbours only: their mean
+``mu`` (eq. 2) and covariance ``Sigma`` (eq. 3), eigenvalues ``l1 <= l2 <= l3`` with eigenvectors
+``e1, e2, e3``, and the local scale ``s = sqrt(trace Sigma)``.  The statistic ``z`` is
+dimensionless (a length divided by ``s``), so similarity transforms change nothing; ``z > 0``
+reads bit 0 (outside the boundary), ``z < 0`` bit 1 (inside).  Constants are fields of
+:class:`~core.tolerances.Tolerances`.
+
+``planes`` (eqs. 15-20)
+    ``Q = e1`` (the least-variance axis of the neighbours: the paper's mean normal depends on the
+    carrier itself), ``Psi = sqrt(l1)`` (eq. 16).  ``z = (|(V - mu).Q| - tau) / s`` with
+    ``tau = max(Psi, plane_floor * s)``.
+``ellipsoids`` (eqs. 21-25)
+    Mahalanobis radius ``rho`` of ``V`` in ``Sigma + alpha s^2 I`` against ``K = radius``;
+    ``z = (rho - K) sqrt(l1') / s``, the distance to the ellipsoid along ``e1`` in units of ``s``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.eig3 import eigh3
+from core.hashing import derive, mix64
+from core.mesh import Adjacency, adjacency, neighbour_moments
+from core.options import METHODS
+from core.sync import Labels, select_carriers, vertex_labels
+from core.tolerances import TOL, Tolerances
+
+
+@dataclass
+class Analysis:
+    """Carriers of one mesh under one key and method, with their boundaries and statistics.
+
+    Attributes
+    ----------
+    carriers : (k,) int64 ndarray
+        Vertex indices.
+    slot_hash : (k,) uint64 ndarray
+        Keyed hash of each carrier's label, which decides its codeword slot (:mod:`core.slots`).
+    z : (k,) float64 ndarray
+        Signed statistic: > 0 reads bit 0, < 0 reads bit 1.
+    mu : (k, 3) float64 ndarray
+        Mean of each carrier's neighbours.
+    axes : (k, 3, 3) float64 ndarray
+        Eigenvectors (columns) of the neighbours' covariance, by ascending eigenvalue.
+    lam : (k, 3) float64 ndarray
+        Eigenvalues (regularised for ``ellipsoids``).
+    scale : (k,) float64 ndarray
+        Local scale ``s``.
+    regular : bool
+        The labels used the geometric fallback of regular meshes.
+    """
+
+    carriers: np.ndarray
+    slot_hash: np.ndarray
+    z: np.ndarray
+    mu: np.ndarray
+    axes: np.ndarray
+    lam: np.ndarray
+    scale: np.ndarray
+    regular: bool
+
+    def subset(self, which: np.ndarray) -> Analysis:
+        """The carriers selected by ``which`` (a boolean mask or indices)."""
+        return Analysis(self.carriers[which], self.slot_hash[which], self.z[which], self.mu[which],
+                        self.axes[which], self.lam[which], self.scale[which], self.regular)
+
+
+def _key_salts(key: str | bytes) -> tuple[np.uint64, np.uint64]:
+    return np.uint64(derive(key, "meshmark-prio")), np.uint64(derive(key, "meshmark-slot"))
+
+
+def statistic(method: str, v: np.ndarray, mu: np.ndarray, axes: np.ndarray, lam: np.ndarray,
+              scale: np.ndarray, tol: Tolerances = TOL) -> np.ndarray:
+    """Signed, dimensionless side of the boundary of carriers at positions ``v``.
+
+    Parameters
+    ----------
+    method : str
+        ``"planes"`` or ``"ellipsoids"``.
+    v, mu : (k, 3) float64 ndarray
+        Carrier positions and their neighbours' means.
+    axes : (k, 3, 3) float64 ndarray
+    lam : (k, 3) float64 ndarray
+        Eigenvectors and eigenvalues (regularised for ``ellipsoids``).
+    scale : (k,) float64 ndarray
+
+    Returns
+    -------
+    (k,) float64 ndarray
+        ``z``: > 0 outside the boundary (bit 0), < 0 inside (bit 1).
+    """
+    y = np.einsum("kij,ki->kj", axes, v - mu)  # coordinates in the eigenbasis
+    if method == "planes":
+        tau = np.maximum(np.sqrt(np.maximum(lam[:, 0], 0.0)), tol.plane_floor * scale)
+        return (np.abs(y[:, 0]) - tau) / scale
+    rho = np.sqrt((y * y / lam).sum(axis=1))
+    return (rho - tol.radius) * np.sqrt(lam[:, 0]) / scale
+
+
+def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, methods: Sequence[str],
+                    adj: Adjacency | None = None, labels: Labels | None = None,
+                    tol: Tolerances = TOL) -> dict[str, Analysis]:
+    """Select the carriers of a mesh and read their statistics (the detector's view).
+
+    Parameters
+    ----------
+    vertices : (n, 3) float64 ndarray
+    faces : (m, 3) int64 ndarray
+    key : str or bytes
+    methods : sequence of str
+        Names from :data:`~core.options.METHODS`.
+    adj, labels : optional
+        The mesh's adjacency and :func:`~core.sync.vertex_labels`, when the caller has them.
+
+    Returns
+    -------
+    dict of str to Analysis
+        One per method.  The carriers and their neighbourhoods do not depend on the method, only
+        the statistic does, so the methods share one selection.
+    """
+    for method in methods:
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}")
+    v = np.asarray(vertices, np.float64)
+    if adj is None:
+        adj = adjacency(faces, len(v))
+    if labels is None:
+        labels = vertex_labels(v, adj)
+    salt_p, salt_s = _key_salts(key)
+    prio = mix64(labels.labels ^ salt_p)
+    sel = select_carriers(adj, prio, labels.usable)
+    mu, sigma = neighbour_moments(v, adj, sel)
+    lam, axes = eigh3(sigma)
+    lam = np.maximum(lam, 0.0)
+    scale = np.sqrt(lam.sum(axis=1))
+    ok = (scale > 0) & (lam[:, 1] > tol.min_flatness * np.maximum(lam[:, 2], 1e-300))
+    if ok.any():
+        ok &= scale <= tol.max_scale * np.median(scale[ok])
+    sel, mu, axes, lam, scale = sel[ok], mu[ok], axes[ok], lam[ok], scale[ok]
+    slot_hash = mix64(labels.labels[sel] ^ salt_s)
+    out = {}
+    for method in methods:
+        lam_m = lam + tol.alpha * (scale**2)[:, None] if method == "ellipsoids" else lam
+        z = statistic(method, v[sel], mu, axes, lam_m, scale, tol)
+        out[method] = Analysis(sel, slot_hash, z, mu, axes, lam_m, scale, labels.regular)
+    return out
+
+
+def analyse(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, method: str,
+            adj: Adjacency | None = None, labels: Labels | None = None,
+            tol: Tolerances = TOL) -> Analysis:
+    """:func:`analyse_methods` for one method."""
+    return analyse_methods(vertices, faces, key, [method], adj, labels, tol)[method]
+
+
+def prepare(vertices: Sequence[np.ndarray], faces: Sequence[np.ndarray]) -> list[tuple[Adjacency, Labels]]:
+    """Adjacency and keyless labels of each mesh: what every analysis of it needs first."""
+    out = []
+    for v, f in zip(vertices, faces, strict=True):
+        adj = adjacency(f, len(v))
+        out.append((adj, vertex_labels(np.asarray(v, np.float64), adj)))
+    return out

@@ -1,0 +1,83 @@
+"""What the engine answers: the report of an embedding, a detection and a capacity measurement.
+
+Plain frozen dataclasses of numbers, strings and lists (``to_dict()`` is their JSON), so the
+service and the command line print them as they are.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+#: called with the fraction done, from 0 to 1
+Progress = Callable[[float], None]
+
+
+class _Report:
+    """A report's JSON: ``to_dict()``, field by field."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)  # type: ignore[call-overload]
+
+
+@dataclass(frozen=True)
+class EmbedReport(_Report):
+    """What an embedding did.  Distances are relative to the bounding-box diagonal."""
+
+    method: str
+    strength: float
+    payload_bits: int          # payload length (32 for the key-derived default code)
+    key_derived: bool          # True when no payload was given (the paper's mode)
+    codeword_bits: int         # bits after CRC + error-correcting code
+    carriers: int              # carriers moved (all parts)
+    copies: float              # carriers / codeword_bits
+    skipped: int               # carriers left alone because they would exceed the displacement cap
+    vertices_moved: int
+    rms_displacement: float    # over all vertices
+    max_displacement: float
+    hausdorff: float           # symmetric Hausdorff distance between input and output vertices/surface
+    decimals: int | None       # text formats: decimals printed for moved coordinates
+    cap_factor: float          # displacement cap used, as a multiple of the default (coarse meshes)
+    parts: list[dict[str, Any]] = field(default_factory=list)
+
+@dataclass(frozen=True)
+class DetectResult(_Report):
+    """Blind detection result.  ``detected`` means the CRC verified (or, for the key-derived
+    code, the bit errors are few enough that ``false_positive_probability`` < 1e-6)."""
+
+    detected: bool
+    payload: str | None              # bitstring of '0'/'1'
+    bit_confidence: list[float]      # per payload bit, probability that the bit is right
+    false_positive_probability: float
+    copies: float
+    carriers: int
+    crc_ok: bool
+    method: str | None
+    key_derived: bool
+    bit_errors: int | None = None    # only with an expected payload
+    p_value: float | None = None     # only with an expected payload
+    parts: list[dict[str, Any]] = field(default_factory=list)
+
+@dataclass(frozen=True)
+class CapacityReport(_Report):
+    method: str
+    strength: float
+    carriers: int
+    max_payload_bits: int            # largest payload with carriers >= 1.5 x its codeword (CRC + code)
+    copies_of_default: float         # copies of the key-derived 32-bit code
+    codeword_bits_default: int       # 56: the key-derived code with Hamming(7,4)
+    expected_rms_displacement: float
+    expected_max_displacement: float
+    payload_bits_by_copies: dict[str, int] = field(default_factory=dict)  # copies -> largest payload
+    parts: list[dict[str, Any]] = field(default_factory=list)
+
+@dataclass(frozen=True)
+class EmbeddedFile:
+    """The marked file: its bytes, the report, and how to send it (from the format's spec)."""
+
+    data: bytes
+    report: EmbedReport
+    format: str
+    media_type: str
+    extension: str

@@ -1,0 +1,54 @@
+"""The constants of the two methods, in one frozen dataclass (trimesh's ``tol``).
+
+How each value was chosen, and what was measured, is in ``core/README.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """Every constant of the method.  Lengths are in units of the carrier's local scale ``s``
+    unless said otherwise.
+
+    Attributes
+    ----------
+    strength : float
+        Default margin ``|z|`` of a carrier after embedding.
+    plane_floor : float
+        ``planes``: the half-width ``tau`` of the planes is at least ``plane_floor * s``, so that
+        bit 1 (inside) is reachable on flat rings, where ``Psi = 0``.
+    alpha : float
+        ``ellipsoids``: the neighbours' covariance is regularised as ``Sigma + alpha s^2 I`` (flat
+        rings have a singular ``Sigma``).
+    radius : float
+        ``ellipsoids``: the Mahalanobis radius ``K`` of the boundary.
+    min_flatness : float
+        A neighbourhood with ``l2 <= min_flatness * l3`` is a line, not a surface: no carrier.
+    max_scale : float
+        A carrier whose scale exceeds ``max_scale`` times the median scale is dropped.
+    max_local_move : float
+        Displacement cap of one carrier.
+    max_move : float
+        Displacement cap as a fraction of the bounding-box diagonal...
+    coarse_move : float
+        ...or as this fraction of the median local scale, whichever is larger (coarse meshes).
+    verify_rounds : int
+        Embed, re-read after storage rounding, fix: at most this many rounds.
+    """
+
+    strength: float = 0.07
+    plane_floor: float = 0.07
+    alpha: float = 0.05
+    radius: float = 0.8
+    min_flatness: float = 0.05
+    max_scale: float = 4.0
+    max_local_move: float = 0.8
+    max_move: float = 5e-3
+    coarse_move: float = 0.25
+    verify_rounds: int = 12
+
+
+TOL = Tolerances()
