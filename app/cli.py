@@ -20,6 +20,7 @@ from typing import Any, NoReturn
 from core import api
 from core.allocator import tune_malloc
 from core.errors import MeshMarkError
+from core.formats import FORMATS
 from core.options import check_key
 
 EXIT_OK, EXIT_NOT_DETECTED, EXIT_USAGE, EXIT_INTERNAL = 0, 1, 2, 3
@@ -179,7 +180,7 @@ def _parser() -> argparse.ArgumentParser:
                        help=f"embedding method (default: {default or 'try both'})")
 
     p = sub.add_parser("embed", help="watermark a mesh file")
-    p.add_argument("input", help="mesh file (OBJ, PLY, STL, OFF, GLB, glTF, 3DS)")
+    p.add_argument("input", help=f"mesh file ({', '.join(spec.label for spec in FORMATS.values())})")
     p.add_argument("output", help="where to write the watermarked mesh (same format)")
     key_options(p)
     p.add_argument("--payload", help="bitstring of 1-256 '0'/'1' (default: 32 bits derived from the key)")

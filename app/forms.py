@@ -27,6 +27,7 @@ from app.problems import BAD_FORM, BUSY, ProblemError, problem_response
 from app.workers.tasks import CapacityTask, DetectTask, EmbedTask
 from core.coding import MAX_PAYLOAD_BITS
 from core.errors import PayloadError
+from core.formats import FORMATS, spoken_list
 from core.options import DEFAULT_METHOD, DEFAULT_STRENGTH, MAX_STRENGTH, METHODS, Options
 
 #: text fields of one form (key, payload, method, strength and a few unknown ones, which are ignored)
@@ -35,6 +36,7 @@ MAX_FORM_FIELDS = 16
 MAX_TEXT_FIELD_BYTES = 64 * 1024
 #: the form fields of the routes; other names are not repeated in messages
 FIELD_NAMES = ("mesh", "key", "payload", "method", "strength")
+FORMAT_LABELS = [spec.label for spec in FORMATS.values()]
 _FORM_LIMITS = {"max_files": 1, "max_fields": MAX_FORM_FIELDS, "max_part_size": MAX_TEXT_FIELD_BYTES}
 
 
@@ -189,7 +191,7 @@ def _options(**fields: Any) -> Options:
         raise ProblemError(BAD_FORM, str(exc)) from None
 
 
-MeshFile = Annotated[UploadFile, File(description="The mesh: OBJ, PLY, STL, OFF, GLB, glTF or 3DS.")]
+MeshFile = Annotated[UploadFile, File(description=f"The mesh: {spoken_list(FORMAT_LABELS)}.")]
 Payload = Annotated[str | None, Form(description=f"Bitstring of 1-{MAX_PAYLOAD_BITS} '0'/'1'. Embed: the "
                                      "payload (default: a 32-bit code derived from the key). Detect: the "
                                      "expected payload, to get bit errors and a p-value.",

@@ -10,6 +10,7 @@ from fastapi import Response
 
 from app.jobs.store import JobResult
 from core.api import EmbeddedFile
+from core.formats import FORMATS
 
 #: documented response headers of an embedding (name -> description); the README lists the same
 EMBED_HEADERS: dict[str, str] = {
@@ -24,10 +25,8 @@ EMBED_HEADERS: dict[str, str] = {
     "X-MeshMark-Report": "The whole embedding report as compact JSON.",
 }
 
-#: ``Content-Type`` of a watermarked mesh, one per format (the ``media_type`` of each reader's
-#: document; the README's format table lists the same)
-MESH_MEDIA_TYPES = ("model/obj", "application/x-ply", "model/stl", "application/off", "model/gltf-binary",
-                    "model/gltf+json", "application/x-3ds")
+#: ``Content-Type`` of a watermarked mesh, one per format
+MESH_MEDIA_TYPES = tuple(spec.media_type for spec in FORMATS.values())
 
 _UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
 

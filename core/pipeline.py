@@ -13,7 +13,7 @@ from core.coding import KEY_CODE_BITS, MAX_PAYLOAD_BITS, codeword_length, encode
 from core.detection import detect_analyses
 from core.embedding import embed_parts
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
-from core.formats import DEFAULT_LIMITS, Limits, MeshDocument, MeshPart, read_mesh, weld
+from core.formats import DEFAULT_LIMITS, FORMATS, Limits, MeshDocument, MeshPart, read_mesh, weld
 from core.mesh import Adjacency, bbox_diagonal
 from core.options import DEFAULT_METHOD, Options
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
@@ -213,7 +213,8 @@ def embed(data: bytes, options: Options, *, filename: str | None = None, limits:
     new, rep, dec = _embed_doc(doc, options, report)
     out = doc.write(new, decimals=dec) if dec is not None else doc.write(new)
     report(1.0)
-    return EmbeddedFile(out, rep, doc.format, doc.media_type, doc.extension)
+    spec = FORMATS[doc.format]
+    return EmbeddedFile(out, rep, doc.format, spec.media_type, spec.extension)
 
 
 def embed_file(data: bytes, key: str | bytes, *, filename: str | None = None, payload: str | None = None,

@@ -122,20 +122,7 @@ def init_worker(channel: Connection, memory_mb: int) -> None:
         limit = memory_mb * 1024 * 1024
         resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     _channel = channel
-    _warm_up()
     _send("hello", None, os.getpid())
-
-
-def _warm_up() -> None:
-    """Import the engine and every format reader now, so that a fresh worker's first job is not
-    charged for them against its time limit."""
-    import importlib
-
-    from core.formats import FORMATS
-
-    importlib.import_module("core.pipeline")
-    for module, _ in FORMATS.values():
-        importlib.import_module(module)
 
 
 def _send(kind: str, task_id: str | None, value: float | int) -> None:

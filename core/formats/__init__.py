@@ -3,66 +3,70 @@
 >>> doc = read_mesh(data, filename="bunny.ply")
 >>> new = [p.vertices + 0.0 for p in doc.parts]
 >>> out = doc.write(new)              # same format, same encoding, same bytes elsewhere
+
+Every reader module exports its :class:`FormatSpec`; :data:`FORMATS` lists them, and everything
+else that names formats (extensions, media types, messages, the service's documentation) is
+derived from it.  A new format is a new module plus one entry here.
 """
 
 from __future__ import annotations
 
-import importlib
-
 from core.errors import UnsupportedFormatError
-from core.formats.base import DEFAULT_LIMITS, Limits, MeshDocument, MeshPart, fan_triangulate, weld
+from core.formats import gltf, obj, off, ply, stl, tds
+from core.formats.base import (
+    DEFAULT_LIMITS,
+    FormatSpec,
+    Limits,
+    MeshDocument,
+    MeshPart,
+    fan_triangulate,
+    weld,
+)
 
 __all__ = [
     "DEFAULT_LIMITS",
     "FORMATS",
+    "FormatSpec",
     "Limits",
     "MeshDocument",
     "MeshPart",
     "detect_format",
     "fan_triangulate",
     "read_mesh",
+    "spoken_list",
     "weld",
 ]
 
-#: format name -> (module, extensions accepted for it)
-FORMATS: dict[str, tuple[str, tuple[str, ...]]] = {
-    "glb": ("core.formats.gltf", ("glb",)),
-    "gltf": ("core.formats.gltf", ("gltf",)),
-    "ply": ("core.formats.ply", ("ply",)),
-    "3ds": ("core.formats.tds", ("3ds",)),
-    "stl": ("core.formats.stl", ("stl",)),
-    "off": ("core.formats.off", ("off",)),
-    "obj": ("core.formats.obj", ("obj",)),
+#: every format by name, in the order documentation and messages list them
+FORMATS: dict[str, FormatSpec] = {
+    spec.name: spec for spec in (obj.SPEC, ply.SPEC, stl.SPEC, off.SPEC, *gltf.SPECS, tds.SPEC)
 }
+_SNIFF_ORDER = sorted(FORMATS.values(), key=lambda spec: spec.sniff_rank)
+_BY_EXTENSION = {ext: spec for spec in FORMATS.values() for ext in spec.extensions}
+
+
+def spoken_list(words: list[str]) -> str:
+    """``"a, b or c"``."""
+    return f"{', '.join(words[:-1])} or {words[-1]}" if len(words) > 1 else "".join(words)
 
 
 def detect_format(data: bytes, filename: str | None = None) -> str:
     """Name of the format of ``data`` from its content, cross-checked with ``filename``'s extension.
 
-    Each format module provides ``sniff(data: bytes, name: str) -> bool`` (``name`` is the format
-    key, for modules handling two).  Raises :class:`UnsupportedFormatError` when no format matches,
-    or when the content contradicts a known mesh extension.
+    Raises :class:`UnsupportedFormatError` when no format matches, or when the content contradicts
+    a known mesh extension.
     """
-    found = None
-    for name, (module, _) in FORMATS.items():
-        if importlib.import_module(module).sniff(data, name):
-            found = name
-            break
+    found = next((spec for spec in _SNIFF_ORDER if spec.sniff(data, spec.name)), None)
     ext = filename.rsplit(".", 1)[-1].lower() if filename and "." in filename else None
+    named = _BY_EXTENSION.get(ext or "")
     if found is None:
         what = f"'.{ext}' file" if ext else "file"
-        hint = ""
-        if ext == "stl" and len(data) >= 84:  # binary STL has no magic: its size is its signature
-            n = int.from_bytes(data[80:84], "little")
-            hint = (f" (as a binary STL it declares {n:,} facets, {84 + 50 * n:,} bytes, "
-                    f"but has {len(data):,})")
-        raise UnsupportedFormatError(
-            f"unsupported format: this {what} is not OBJ, PLY, STL, OFF, glTF/GLB or 3DS{hint}"
-        )
-    known = {e for _, exts in FORMATS.values() for e in exts}
-    if ext in known and ext not in FORMATS[found][1]:
-        raise UnsupportedFormatError(f"file name says '.{ext}' but the content is {found.upper()}")
-    return found
+        hint = named.why_not(data) if named is not None and named.why_not is not None else ""
+        families = list(dict.fromkeys(spec.family for spec in FORMATS.values()))
+        raise UnsupportedFormatError(f"unsupported format: this {what} is not {spoken_list(families)}{hint}")
+    if named is not None and ext not in found.extensions:
+        raise UnsupportedFormatError(f"file name says '.{ext}' but the content is {found.name.upper()}")
+    return found.name
 
 
 def read_mesh(data: bytes, filename: str | None = None, limits: Limits = DEFAULT_LIMITS) -> MeshDocument:
@@ -82,7 +86,5 @@ def read_mesh(data: bytes, filename: str | None = None, limits: Limits = DEFAULT
     MeshDocument
     """
     limits.check("bytes", len(data))
-    fmt = detect_format(data, filename)
-    module = importlib.import_module(FORMATS[fmt][0])
-    doc: MeshDocument = module.read(data, limits, fmt)
-    return doc
+    spec = FORMATS[detect_format(data, filename)]
+    return spec.read(data, limits, spec.name)

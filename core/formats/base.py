@@ -8,6 +8,7 @@ mapping from every *stored* vertex slot (file order) to its welded vertex, so th
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -224,14 +225,10 @@ class MeshDocument:
     Attributes
     ----------
     format : str
-        ``"obj"``, ``"ply"``, ``"stl"``, ``"off"``, ``"glb"``, ``"gltf"`` or ``"3ds"``.
+        The name of its :class:`FormatSpec` (``"obj"``, ``"glb"``...).
     encoding : str
         ``"ascii"``, ``"binary_little_endian"``, ``"binary_big_endian"`` (PLY, and ``"binary"``
         for STL/GLB/3DS).
-    media_type : str
-        MIME type to send the file back with.
-    extension : str
-        Canonical extension without dot (``"ply"``).
     parts : list of MeshPart
         Welded meshes.
     decimals : int or None
@@ -243,8 +240,6 @@ class MeshDocument:
 
     format: str = ""
     encoding: str = ""
-    media_type: str = "application/octet-stream"
-    extension: str = ""
     decimals: int | None = None
     storage_dtype: np.dtype | None = None
 
@@ -296,3 +291,52 @@ class MeshDocument:
 
     def _patch(self, vertices: list[np.ndarray], moved: list[np.ndarray], decimals: int | None) -> bytes:
         raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class FormatSpec:
+    """Everything the rest of MeshMark knows of one format; each reader module exports its own
+    (``SPEC``, or ``SPECS`` for a module that reads two formats), and :mod:`core.formats` lists
+    them.  Extensions, media types, messages and documentation are derived from these.
+
+    Attributes
+    ----------
+    name : str
+        Format key, as in :attr:`MeshDocument.format` (``"ply"``).
+    label : str
+        How documentation names it (``"PLY"``, ``"glTF"``).
+    family : str
+        How error messages name it; formats of one family are named once (``"glTF/GLB"``).
+    extensions : tuple of str
+        File-name extensions, lower case, without the dot; the first names the answer's file.
+    media_type : str
+        ``Content-Type`` of a file of this format.
+    sniff : callable
+        ``sniff(data, name) -> bool``: the content is this format (``name`` is this spec's, for
+        modules that read two formats).
+    read : callable
+        ``read(data, limits, name) -> MeshDocument``.
+    sniff_rank : int
+        Contents are sniffed by increasing rank.  0: a signature in the first bytes that no other
+        format's file starts with; a format recognised by a weaker test (binary STL by its size
+        alone, OFF by its first token, OBJ by its statements) ranks after the formats whose
+        files it could be mistaken for.
+    why_not : callable, optional
+        ``why_not(data) -> str``: a hint appended to the refusal of a file whose extension names
+        this format but whose content matches none.
+    """
+
+    name: str
+    label: str
+    family: str
+    extensions: tuple[str, ...]
+    media_type: str
+    sniff: Callable[[bytes, str], bool]
+    read: Callable[[bytes, Limits, str], MeshDocument]
+    sniff_rank: int = 0
+    why_not: Callable[[bytes], str] | None = None
+
+    @property
+    def extension(self) -> str:
+        """The canonical extension (of the answer's file name)."""
+        return self.extensions[0]

@@ -44,7 +44,7 @@ import numpy as np
 
 from core.errors import DegenerateMeshError, MeshFormatError
 from core.formats._binary import finite_float64, float32_xyz, moved_slots, patch_xyz
-from core.formats.base import Limits, MeshDocument, MeshPart, weld
+from core.formats.base import FormatSpec, Limits, MeshDocument, MeshPart, weld
 
 GLB_MAGIC = b"glTF"
 CHUNK_JSON = 0x4E4F534A
@@ -636,3 +636,9 @@ def _ownership(
         out.append((part_buf, part_off, writable[at : at + part_buf.size]))
         at += part_buf.size
     return out
+
+
+SPECS = (
+    FormatSpec("glb", "GLB", "glTF/GLB", ("glb",), "model/gltf-binary", sniff, read),
+    FormatSpec("gltf", "glTF", "glTF/GLB", ("gltf",), "model/gltf+json", sniff, read),
+)

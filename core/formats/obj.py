@@ -28,7 +28,7 @@ from core.formats._text import (
     sub_lines,
     triangulate,
 )
-from core.formats.base import Limits, MeshPart, weld
+from core.formats.base import FormatSpec, Limits, MeshPart, weld
 
 #: statements that may start an OBJ file (for sniffing)
 _KEYWORDS = {
@@ -75,8 +75,6 @@ class ObjDocument(TextMeshDocument):
 
     format = "obj"
     encoding = "ascii"
-    media_type = "model/obj"
-    extension = "obj"
 
     def __init__(
         self, data: bytes, parts: list[MeshPart], slot_lines: np.ndarray, mtllibs: list[str]
@@ -166,3 +164,6 @@ def read(data: bytes, limits: Limits, name: str = "obj") -> ObjDocument:
     doc = ObjDocument(data, [part], slot_lines, mtllibs)
     doc.decimals = decimals
     return doc
+
+
+SPEC = FormatSpec("obj", "OBJ", "OBJ", ("obj",), "model/obj", sniff, read, sniff_rank=3)

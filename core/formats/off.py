@@ -27,7 +27,7 @@ from core.formats._text import (
     strip_comments,
     triangulate,
 )
-from core.formats.base import Limits, MeshPart, weld
+from core.formats.base import FormatSpec, Limits, MeshPart, weld
 
 _HEADER = re.compile(rb"(ST)?(C)?(N)?(4)?(n)?OFF")
 _SNIFF_BYTES = 4096
@@ -54,8 +54,6 @@ class OffDocument(TextMeshDocument):
 
     format = "off"
     encoding = "ascii"
-    media_type = "application/off"
-    extension = "off"
 
     def __init__(self, data: bytes, parts: list[MeshPart], slot_lines: np.ndarray) -> None:
         super().__init__(data, parts)
@@ -164,3 +162,6 @@ def read(data: bytes, limits: Limits, name: str = "off") -> OffDocument:
     doc = OffDocument(data, [MeshPart("mesh0", vertices, faces, slot_to_vertex)], slot_lines)
     doc.decimals = decimals
     return doc
+
+
+SPEC = FormatSpec("off", "OFF", "OFF", ("off",), "application/off", sniff, read, sniff_rank=2)

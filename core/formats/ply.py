@@ -36,7 +36,7 @@ from core.formats._text import (
     split_lines,
     triangulate,
 )
-from core.formats.base import Limits, MeshPart, weld
+from core.formats.base import FormatSpec, Limits, MeshPart, weld
 
 _TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -160,8 +160,6 @@ class PlyDocument(TextMeshDocument):
     """
 
     format = "ply"
-    media_type = "application/x-ply"
-    extension = "ply"
 
     def __init__(self, data: bytes, parts: list[MeshPart], encoding: str) -> None:
         super().__init__(data, parts)
@@ -631,3 +629,6 @@ def _read_binary(
     flat = flat_l[0] if len(flat_l) == 1 else np.concatenate(flat_l or [np.zeros(0, np.int64)])
     del counts_l, flat_l
     return positions, counts, flat
+
+
+SPEC = FormatSpec("ply", "PLY", "PLY", ("ply",), "application/x-ply", sniff, read)

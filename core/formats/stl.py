@@ -30,7 +30,7 @@ from core.formats._text import (
     split_lines,
     strip_comments,
 )
-from core.formats.base import Limits, MeshDocument, MeshPart, weld
+from core.formats.base import FormatSpec, Limits, MeshDocument, MeshPart, weld
 
 _FACET = np.dtype([("normal", "<f4", (3,)), ("corners", "<f4", (3, 3)), ("attr", "<u2")])
 _SNIFF_BYTES = 4096
@@ -63,8 +63,6 @@ class StlDocument(TextMeshDocument):
     """A parsed STL file (binary or ASCII); one part."""
 
     format = "stl"
-    media_type = "model/stl"
-    extension = "stl"
 
     def __init__(
         self, data: bytes, parts: list[MeshPart], encoding: str, slot_lines: np.ndarray | None
@@ -172,3 +170,14 @@ def _read_ascii(data: bytes, limits: Limits) -> tuple[np.ndarray, np.ndarray, in
     first = data[int(lines.first[0]) : int(lines.ends[0])] if len(lines) else b""
     name = first[5:].strip().decode("utf-8", "replace") if first[:5].lower() == b"solid" else ""
     return positions, lines.starts[vl], decimals, name or "mesh0"
+
+
+def _why_not(data: bytes) -> str:
+    """Binary STL has no magic number, its size is its signature: what the size should be."""
+    if len(data) < 84:
+        return ""
+    n = int.from_bytes(data[80:84], "little")
+    return f" (as a binary STL it declares {n:,} facets, {84 + 50 * n:,} bytes, but has {len(data):,})"
+
+
+SPEC = FormatSpec("stl", "STL", "STL", ("stl",), "model/stl", sniff, read, sniff_rank=1, why_not=_why_not)

@@ -23,7 +23,7 @@ import numpy as np
 
 from core.errors import DegenerateMeshError, MeshFormatError
 from core.formats._binary import finite_float64, float32_xyz, moved_slots, patch_xyz
-from core.formats.base import Limits, MeshDocument, MeshPart, weld
+from core.formats.base import FormatSpec, Limits, MeshDocument, MeshPart, weld
 
 MAIN = 0x4D4D
 VERSION = 0x0002
@@ -97,8 +97,6 @@ class TdsDocument(MeshDocument):
 
     format = "3ds"
     encoding = "binary"
-    media_type = "application/x-3ds"
-    extension = "3ds"
     storage_dtype = np.dtype(np.float32)
 
     def __init__(self, data: bytes, parts: list[MeshPart], offsets: list[np.ndarray]) -> None:
@@ -206,3 +204,6 @@ class _Reader:
         vertices, welded, slot_to_vertex = weld(positions, faces)
         self.parts.append(MeshPart(name=name, vertices=vertices, faces=welded, slot_to_vertex=slot_to_vertex))
         self.offsets.append(vstart + 12 * np.arange(nv, dtype=np.int64))
+
+
+SPEC = FormatSpec("3ds", "3DS", "3DS", ("3ds",), "application/x-3ds", sniff, read)

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core.errors import DegenerateMeshError, LimitExceededError, MeshFormatError, MeshMarkError
-from core.formats import DEFAULT_LIMITS, Limits, tds
+from core.formats import DEFAULT_LIMITS, FORMATS, Limits, tds
 from tests.conftest import MESHES_DIR, shared_mesh_path
 
 FUZZ_EXAMPLES = int(os.environ.get("MESHMARK_FUZZ_EXAMPLES", "100"))
@@ -145,7 +145,7 @@ def test_sink_counts() -> None:
     data = shared_mesh_path("sink.3ds").read_bytes()
     assert tds.sniff(data, "3ds")
     doc = read(data)
-    assert (doc.format, doc.encoding, doc.extension) == ("3ds", "binary", "3ds")
+    assert (doc.format, doc.encoding, FORMATS[doc.format].extension) == ("3ds", "binary", "3ds")
     assert doc.storage_dtype == np.float32
     got = [(p.name, len(p.slot_to_vertex), len(p.vertices), len(p.faces)) for p in doc.parts]
     assert got == [

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from core.errors import LimitExceededError, MeshFormatError, MeshMarkError, UnsupportedFormatError
-from core.formats import Limits, detect_format, obj, off, ply, read_mesh, stl
+from core.formats import FORMATS, Limits, detect_format, obj, off, ply, read_mesh, stl
 from core.formats._text import format_coord, round_like_text
 from tests.conftest import shared_mesh_path
 from tests.core.formats.text_helpers import (
@@ -56,7 +56,8 @@ def test_shared_read_write_reread(name: str) -> None:
     assert detect_format(data, name) == fmt
     doc = read_mesh(data, filename=name)
     part = doc.parts[0]
-    assert (doc.format, doc.encoding, doc.extension, doc.media_type) == (fmt, encoding, fmt, MEDIA[fmt])
+    spec = FORMATS[doc.format]
+    assert (doc.format, doc.encoding, spec.extension, spec.media_type) == (fmt, encoding, fmt, MEDIA[fmt])
     assert len(doc.parts) == 1
     assert part.slot_to_vertex.shape == (slots,)
     assert part.vertices.shape == (welded, 3)
