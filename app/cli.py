@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
+from app.workers.process import one_blas_thread
 from core import api
 from core.allocator import tune_malloc
 from core.errors import MeshMarkError
@@ -140,8 +141,6 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _worker(args: argparse.Namespace) -> int:
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")  # before numpy loads: one BLAS thread per worker process
     from pydantic import ValidationError
 
     from app.config import Settings
@@ -154,10 +153,11 @@ def _worker(args: argparse.Namespace) -> int:
         problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
         raise _UsageError(f"invalid settings: {problems}") from None
     try:
-        from app.workers.celery_app import run_worker
+        from app.redis_jobs.celery_app import run_worker
     except ImportError as exc:
         raise _UsageError(f"the Redis backend needs the 'redis' extra (pip install 'meshmark[redis]'): "
                           f"{exc}") from None
+    one_blas_thread()
     try:
         run_worker(settings)
     except PermissionError as exc:

@@ -23,8 +23,8 @@ from starlette.types import Receive
 
 from app.deps import SettingsDep, WatermarkKey
 from app.inputs import PAYLOAD_SCHEMA, STRENGTH_SCHEMA
-from app.problems import BAD_FORM, BUSY, ProblemError, problem_response
-from app.workers.tasks import CapacityTask, DetectTask, EmbedTask
+from app.problems import BAD_FORM, ProblemError, problem_response
+from app.workers.tasks import Task
 from core.coding import MAX_PAYLOAD_BITS
 from core.errors import PayloadError
 from core.formats import FORMATS, spoken_list
@@ -177,10 +177,7 @@ class PooledFormRoute(StrictFormRoute):
 
     def admit(self, request: Request) -> ProblemError | None:
         pool = getattr(request.app.state, "pool", None)
-        if pool is not None and pool.pending >= pool.slots:
-            return ProblemError(BUSY, f"all {pool.slots} task slots are taken; retry later",
-                                headers={"Retry-After": str(pool.retry_after())})
-        return None
+        return pool.refusal() if pool is not None else None
 
 
 def _options(**fields: Any) -> Options:
@@ -210,10 +207,10 @@ async def embed_task(
     payload: Payload = None,
     method: Annotated[str, Form(json_schema_extra=_METHOD_SCHEMA)] = DEFAULT_METHOD,
     strength: Strength = None,
-) -> EmbedTask:
+) -> Task:
     data = await mesh.read()
     options = _options(key=key, payload=payload, method=method, strength=strength)
-    return EmbedTask(data=data, options=options, filename=mesh.filename, limits=settings.limits())
+    return Task("embed", data, options, filename=mesh.filename, limits=settings.limits())
 
 
 async def detect_task(
@@ -223,10 +220,10 @@ async def detect_task(
     payload: Payload = None,
     method: Annotated[str | None, Form(description="Method to look for (default: both).",
                                        json_schema_extra=_METHOD_SCHEMA)] = None,
-) -> DetectTask:
+) -> Task:
     data = await mesh.read()
     options = _options(key=key, payload=payload, method=method)
-    return DetectTask(data=data, options=options, filename=mesh.filename, limits=settings.limits())
+    return Task("detect", data, options, filename=mesh.filename, limits=settings.limits())
 
 
 async def capacity_task(
@@ -234,12 +231,12 @@ async def capacity_task(
     mesh: MeshFile,
     method: Annotated[str, Form(json_schema_extra=_METHOD_SCHEMA)] = DEFAULT_METHOD,
     strength: Strength = None,
-) -> CapacityTask:
+) -> Task:
     data = await mesh.read()
     options = _options(method=method, strength=strength)
-    return CapacityTask(data=data, options=options, filename=mesh.filename, limits=settings.limits())
+    return Task("capacity", data, options, filename=mesh.filename, limits=settings.limits())
 
 
-EmbedForm = Annotated[EmbedTask, Depends(embed_task)]
-DetectForm = Annotated[DetectTask, Depends(detect_task)]
-CapacityForm = Annotated[CapacityTask, Depends(capacity_task)]
+EmbedForm = Annotated[Task, Depends(embed_task)]
+DetectForm = Annotated[Task, Depends(detect_task)]
+CapacityForm = Annotated[Task, Depends(capacity_task)]

@@ -13,7 +13,8 @@ from fastapi import Depends, FastAPI
 
 from app.config import Settings
 from app.deps import require_caller
-from app.jobs.backends import make_runner
+from app.jobs import Runner
+from app.memory_jobs import InMemoryJobStore, LocalJobRunner
 from app.metrics import Metrics
 from app.middleware import BodyLimitMiddleware, MetricsMiddleware
 from app.problems import BAD_FORM, Problem, install_problem_handlers, problem_responses
@@ -28,6 +29,18 @@ from the mesh and the key alone (blind detection).
 Errors are RFC 9457 problem details (`application/problem+json`) whose `type` is one of the
 `https://meshmark.dev/problems/<slug>` URIs listed in the README. The watermark key is never echoed
 or logged."""
+
+
+def make_runner(settings: Settings, pool: WorkerPool) -> Runner:
+    """The jobs backend of ``settings.jobs_backend``: this process's pool (``memory``), or Celery
+    workers through Redis (``redis``; imported only then, so that a single machine needs neither
+    Celery nor Redis installed)."""
+    if settings.jobs_backend == "redis":
+        from app.redis_jobs.runner import CeleryJobRunner
+
+        return CeleryJobRunner.from_settings(settings)
+    return LocalJobRunner(InMemoryJobStore(), pool, ttl=settings.job_result_ttl_seconds,
+                          max_jobs=settings.max_stored_jobs)
 
 
 @asynccontextmanager

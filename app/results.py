@@ -1,14 +1,13 @@
-"""Engine results as HTTP responses, shared by the synchronous routes and the job results."""
+"""Engine results as HTTP answers (body, media type, headers), the same for the synchronous routes
+and the job results, whichever process renders them."""
 
 from __future__ import annotations
 
 import json
 import re
+from dataclasses import dataclass, field
 from typing import Any
 
-from fastapi import Response
-
-from app.jobs.store import JobResult
 from core.api import EmbeddedFile
 from core.formats import FORMATS
 
@@ -31,6 +30,15 @@ MESH_MEDIA_TYPES = tuple(spec.media_type for spec in FORMATS.values())
 _UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
 
 
+@dataclass(frozen=True)
+class Rendered:
+    """An answer ready to send: body, media type, extra headers."""
+
+    body: bytes
+    media_type: str
+    headers: dict[str, str] = field(default_factory=dict)
+
+
 def safe_stem(filename: str | None) -> str:
     """A file-name stem that is safe inside a quoted ``Content-Disposition`` value."""
     name = re.split(r"[\\/]", filename or "")[-1]
@@ -43,7 +51,8 @@ def _json(value: Any) -> bytes:
     return json.dumps(value, separators=(",", ":"), allow_nan=False).encode()
 
 
-def embedded_result(embedded: EmbeddedFile, filename: str | None) -> JobResult:
+def embedded_result(embedded: EmbeddedFile, filename: str | None) -> Rendered:
+    """The marked mesh, named after the upload, with the report in ``X-MeshMark-*`` headers."""
     report = embedded.report
     headers = {
         "Content-Disposition": f'attachment; filename="{safe_stem(filename)}.marked.{embedded.extension}"',
@@ -57,27 +66,9 @@ def embedded_result(embedded: EmbeddedFile, filename: str | None) -> JobResult:
         "X-MeshMark-Hausdorff": f"{report.hausdorff:.6g}",
         "X-MeshMark-Report": _json(report.to_dict()).decode("ascii"),
     }
-    return JobResult(embedded.data, embedded.media_type, headers)
+    return Rendered(embedded.data, embedded.media_type, headers)
 
 
-def json_result(value: Any) -> JobResult:
-    """A dataclass result with ``to_dict()`` as a JSON body."""
-    return JobResult(_json(value.to_dict()), "application/json")
-
-
-def as_response(result: JobResult) -> Response:
-    return Response(result.body, media_type=result.media_type, headers=result.headers)
-
-
-def embed_openapi_response(description: str = "The watermarked mesh, in the format and encoding it was "
-                           "uploaded in.", extra_content: dict[str, Any] | None = None,
-                           ) -> dict[int | str, dict[str, Any]]:
-    """OpenAPI ``responses`` entry of a watermarked-mesh answer, with its documented headers."""
-    binary = {media_type: {"schema": {"type": "string", "format": "binary"}}
-              for media_type in MESH_MEDIA_TYPES}
-    headers = {"Content-Disposition": {"schema": {"type": "string"},
-                                       "description": 'attachment; filename="<stem>.marked.<ext>"'}}
-    headers.update({name: {"schema": {"type": "string"}, "description": text}
-                    for name, text in EMBED_HEADERS.items()})
-    return {200: {"description": description, "content": {**binary, **(extra_content or {})},
-                  "headers": headers}}
+def json_result(value: Any) -> Rendered:
+    """A report with ``to_dict()`` as a JSON body."""
+    return Rendered(_json(value.to_dict()), "application/json")

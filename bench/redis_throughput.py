@@ -72,7 +72,7 @@ async def _wait_ready(runner: Any, workers: list[subprocess.Popen[bytes]], task:
     while len(seen) < len(workers):
         if time.monotonic() > deadline or any(w.poll() is not None for w in workers):
             raise RuntimeError("the Celery workers did not start (see their logs)")
-        jobs = [await runner.submit("embed", task) for _ in workers]
+        jobs = [await runner.submit(task) for _ in workers]
         for job in jobs:
             while not (await runner.store.get(job.id)).done:
                 await asyncio.sleep(0.01)
@@ -105,10 +105,10 @@ async def _idle_gaps(runner: Any, ids: list[str]) -> list[float]:
     return gaps
 
 
-async def _throughput(runner: Any, task: Any, render: Any, n: int, gaps: list[float] | None = None) -> float:
+async def _throughput(runner: Any, task: Any, n: int, gaps: list[float] | None = None) -> float:
     """Jobs per second for ``n`` jobs submitted at once."""
     t0 = time.perf_counter()
-    ids = [(await runner.submit("embed", task, render)).id for _ in range(n)]
+    ids = [(await runner.submit(task)).id for _ in range(n)]
     while True:
         counts = await runner.store.count()
         if counts["succeeded"] + counts["failed"] + counts["cancelled"] >= n:
@@ -124,10 +124,10 @@ async def _throughput(runner: Any, task: Any, render: Any, n: int, gaps: list[fl
     return n / seconds
 
 
-async def _round_trip(runner: Any, task: Any, render: Any) -> float:
+async def _round_trip(runner: Any, task: Any) -> float:
     """Seconds from submit to seen finished, for one job alone."""
     t0 = time.perf_counter()
-    job = await runner.submit("embed", task, render)
+    job = await runner.submit(task)
     while not (await runner.store.get(job.id)).done:
         await asyncio.sleep(0.001)
     seconds = time.perf_counter() - t0
@@ -145,30 +145,25 @@ async def _measure(args: argparse.Namespace, env: dict[str, str]) -> dict[str, A
     import trimesh
 
     from app.config import Settings
-    from app.jobs.celery_runner import CeleryJobRunner
-    from app.jobs.runner import JobRunner
-    from app.jobs.store import InMemoryJobStore
-    from app.results import embedded_result
+    from app.memory_jobs import InMemoryJobStore, LocalJobRunner
+    from app.redis_jobs.runner import CeleryJobRunner
     from app.workers.pool import WorkerPool
-    from app.workers.tasks import EmbedTask
+    from app.workers.tasks import Task
     from core.options import Options
 
     n_workers = args.jobs
     n_jobs = 16 if args.quick else 60
     rounds = 2 if args.quick else 9
     trips = 10 if args.quick else 30
-    beetle = EmbedTask(data=mesh_path(THROUGHPUT_MESH).read_bytes(), options=Options(key=KEY),
-                       filename=THROUGHPUT_MESH)
+    beetle = Task("embed", data=mesh_path(THROUGHPUT_MESH).read_bytes(), options=Options(key=KEY),
+                  filename=THROUGHPUT_MESH)
     sphere = trimesh.creation.icosphere(subdivisions=4).export(file_type="obj").encode()
-    small = EmbedTask(data=sphere, options=Options(key=KEY), filename="sphere.obj")
-    noop = EmbedTask(data=b"", options=Options(key=KEY), filename="empty.obj")
-
-    def render(value: Any) -> Any:
-        return embedded_result(value, THROUGHPUT_MESH)
+    small = Task("embed", data=sphere, options=Options(key=KEY), filename="sphere.obj")
+    noop = Task("embed", data=b"", options=Options(key=KEY), filename="empty.obj")
 
     pool = WorkerPool(workers=n_workers, slots=4 * n_jobs, timeout=120, memory_mb=0, max_tasks=0)
     await pool.start()
-    local = JobRunner(InMemoryJobStore(), pool, ttl=3600, max_jobs=4 * n_jobs)
+    local = LocalJobRunner(InMemoryJobStore(), pool, ttl=3600, max_jobs=4 * n_jobs)
     settings = Settings(jobs_backend="redis", redis_url=env["MESHMARK_REDIS_URL"],
                         jobs_queue=env["MESHMARK_JOBS_QUEUE"], blob_dir=Path(env["MESHMARK_BLOB_DIR"]),
                         max_stored_jobs=4 * n_jobs)
@@ -190,7 +185,7 @@ async def _measure(args: argparse.Namespace, env: dict[str, str]) -> dict[str, A
         await _wait_ready(remote, workers, small)
         backends = {"in-process": local, "redis": remote}
         for runner in backends.values():  # warm-up: every worker has embedded the mesh once
-            await _throughput(runner, beetle, render, 2 * n_workers)
+            await _throughput(runner, beetle, 2 * n_workers)
         rates: dict[str, list[float]] = {name: [] for name in backends}
         cpu: dict[str, list[float]] = {name: [] for name in backends}
         gaps: list[float] = []
@@ -198,15 +193,15 @@ async def _measure(args: argparse.Namespace, env: dict[str, str]) -> dict[str, A
             for name, runner in backends.items():
                 procs = pids(name)
                 before = sum(cpu_seconds(p) for p in procs)
-                rates[name].append(await _throughput(runner, beetle, render, n_jobs,
+                rates[name].append(await _throughput(runner, beetle, n_jobs,
                                                      gaps if name == "redis" else None))
                 cpu[name].append((sum(cpu_seconds(p) for p in procs) - before) / n_jobs)
         inline, round_trips = [], {name: {"noop": [], "small": []} for name in backends}
         for _ in range(trips):
             inline.append(_inline_seconds(small))
             for name, runner in backends.items():
-                round_trips[name]["noop"].append(await _round_trip(runner, noop, render))
-                round_trips[name]["small"].append(await _round_trip(runner, small, render))
+                round_trips[name]["noop"].append(await _round_trip(runner, noop))
+                round_trips[name]["small"].append(await _round_trip(runner, small))
         result.update(rates=rates, cpu_seconds_per_job=cpu, redis_idle_gaps=gaps,
                       inline_small_seconds=inline,
                       round_trips=round_trips, load_after=_loadavg())

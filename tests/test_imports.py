@@ -1,5 +1,5 @@
-"""Dependencies run one way: no import cycle between the modules of ``core`` and ``app``, and
-``core`` imports nothing of ``app`` or ``bench``."""
+"""Dependencies run one way: no import cycle between the modules of ``core`` and ``app``, nor
+between their packages, and ``core`` imports nothing of ``app`` or ``bench``."""
 
 from __future__ import annotations
 
@@ -32,8 +32,22 @@ def import_graph(*packages: str) -> dict[str, set[str]]:
     return graph
 
 
+def _unit(module: str) -> str:
+    """A subpackage (``app.jobs``, ``core.formats``) for its modules; any other module itself."""
+    parts = module.split(".")
+    return ".".join(parts[:2]) if len(parts) > 2 or (ROOT / module.replace(".", "/")).is_dir() else module
+
+
 def test_no_import_cycle_between_modules() -> None:
     graphlib.TopologicalSorter(import_graph("core", "app")).prepare()  # raises CycleError
+
+
+def test_no_import_cycle_between_packages() -> None:
+    units: dict[str, set[str]] = {}
+    for module, deps in import_graph("core", "app").items():
+        here = _unit(module)
+        units.setdefault(here, set()).update(u for u in map(_unit, deps) if u != here)
+    graphlib.TopologicalSorter(units).prepare()
 
 
 def test_core_does_not_import_the_service() -> None:

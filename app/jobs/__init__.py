@@ -1,6 +1,7 @@
-"""Asynchronous jobs: a store interface and the runner that feeds the worker pool."""
+"""Asynchronous jobs: the job record and the store and runner interfaces, nothing that runs them
+(the backends: :mod:`app.memory_jobs`, :mod:`app.redis_jobs`)."""
 
-from app.jobs.runner import JobRunner, Runner
-from app.jobs.store import FINISHED, InMemoryJobStore, Job, JobResult, JobStore
+from app.jobs.runner import Runner, check_room
+from app.jobs.store import FINISHED, STATES, Job, JobState, JobStore
 
-__all__ = ["FINISHED", "InMemoryJobStore", "Job", "JobResult", "JobRunner", "JobStore", "Runner"]
+__all__ = ["FINISHED", "STATES", "Job", "JobState", "JobStore", "Runner", "check_room"]

@@ -1,36 +1,31 @@
-"""Where jobs and their results live between requests.
+"""Where jobs and their results live between requests: the :class:`Job` record and the
+:class:`JobStore` interface the routes and the runners use.
 
-:class:`JobStore` is the interface the routes and the runner use; :class:`InMemoryJobStore` keeps
-everything in this process (jobs vanish on restart and are not shared between server processes).
-:class:`app.jobs.redis_store.RedisJobStore` implements the same coroutines on Redis.
+Implementations: :class:`app.memory_jobs.InMemoryJobStore` (this process; jobs vanish on restart
+and are not shared between server processes) and :class:`app.redis_jobs.store.RedisJobStore`.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
-JobKind = Literal["embed", "detect"]
+from app.results import Rendered
+
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+#: every state, in the order a job goes through them
+STATES: tuple[JobState, ...] = ("queued", "running", "succeeded", "failed", "cancelled")
 FINISHED: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
 
 
 @dataclass(frozen=True)
-class JobResult:
-    """A finished job's response, ready to send: body, media type, extra headers."""
-
-    body: bytes
-    media_type: str
-    headers: dict[str, str] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
 class Job:
-    """Times are Unix seconds; ``expires`` is set when the job finishes."""
+    """A job: ``kind`` is a job kind of :data:`app.workers.tasks.TASKS`.  Times are Unix
+    seconds; ``expires`` is set when the job finishes."""
 
     id: str
-    kind: JobKind
+    kind: str
     state: JobState = "queued"
     progress: float = 0.0
     created: float = field(default_factory=time.time)
@@ -38,7 +33,7 @@ class Job:
     finished: float | None = None
     expires: float | None = None
     error: dict[str, Any] | None = None
-    result: JobResult | None = field(default=None, repr=False)
+    result: Rendered | None = field(default=None, repr=False)
 
     @property
     def done(self) -> bool:
@@ -59,47 +54,5 @@ class JobStore(Protocol):
     async def count(self) -> dict[str, int]:
         """Live (unexpired) jobs by state."""
 
-    async def result(self, job: Job) -> JobResult | None:
-        """The response of a succeeded job (None otherwise, or when it is gone)."""
-
-
-class InMemoryJobStore:
-    """A dict of immutable :class:`Job` values; expired jobs are dropped when touched or counted."""
-
-    def __init__(self) -> None:
-        self._jobs: dict[str, Job] = {}
-
-    def _purge(self) -> None:
-        now = time.time()
-        for job_id in [j.id for j in self._jobs.values() if j.expires is not None and j.expires <= now]:
-            del self._jobs[job_id]
-
-    async def add(self, job: Job) -> None:
-        self._jobs[job.id] = job
-
-    async def get(self, job_id: str) -> Job | None:
-        job = self._jobs.get(job_id)
-        if job is not None and job.expires is not None and job.expires <= time.time():
-            del self._jobs[job_id]
-            return None
-        return job
-
-    async def update(self, job_id: str, **changes: Any) -> Job | None:
-        job = await self.get(job_id)
-        if job is None:
-            return None
-        job = self._jobs[job_id] = replace(job, **changes)
-        return job
-
-    async def delete(self, job_id: str) -> None:
-        self._jobs.pop(job_id, None)
-
-    async def result(self, job: Job) -> JobResult | None:
-        return job.result
-
-    async def count(self) -> dict[str, int]:
-        self._purge()
-        counts = dict.fromkeys(("queued", "running", "succeeded", "failed", "cancelled"), 0)
-        for job in self._jobs.values():
-            counts[job.state] += 1
-        return counts
+    async def result(self, job: Job) -> Rendered | None:
+        """The answer of a succeeded job (None otherwise, or when it is gone)."""

@@ -7,8 +7,7 @@ from fastapi import APIRouter, Response
 from app.deps import PoolDep
 from app.forms import CapacityForm, PooledFormRoute
 from app.problems import problem_responses
-from app.results import as_response, json_result
-from app.routes.embed import MESH_PROBLEMS
+from app.routes.common import MESH_PROBLEMS, as_response
 from core.api import CapacityReport
 
 router = APIRouter(route_class=PooledFormRoute, tags=["watermark"])
@@ -19,4 +18,4 @@ router = APIRouter(route_class=PooledFormRoute, tags=["watermark"])
 async def capacity(task: CapacityForm, pool: PoolDep) -> Response:
     """Carriers, the largest payload that fits once, and the expected distortion at `strength`."""
     report: CapacityReport = await pool.run(task)
-    return as_response(json_result(report))
+    return as_response(task.render(report))

@@ -8,8 +8,7 @@ from app.deps import PoolDep
 from app.forms import DetectForm, PooledFormRoute
 from app.logs import log_task
 from app.problems import problem_responses
-from app.results import as_response, json_result
-from app.routes.embed import MESH_PROBLEMS
+from app.routes.common import MESH_PROBLEMS, as_response
 from core.api import DetectResult
 
 router = APIRouter(route_class=PooledFormRoute, tags=["watermark"])
@@ -22,4 +21,4 @@ async def detect(task: DetectForm, pool: PoolDep, request: Request) -> Response:
     `false_positive_probability` says how likely a mesh without this watermark would score as high."""
     result: DetectResult = await pool.run(task)
     log_task(request, task, detected=result.detected, method=result.method)
-    return as_response(json_result(result))
+    return as_response(task.render(result))

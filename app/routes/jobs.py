@@ -16,7 +16,7 @@ from pydantic import BaseModel, Field
 
 from app.deps import RunnerDep, StoreDep
 from app.forms import DetectForm, EmbedForm, StrictFormRoute
-from app.jobs import Job, JobStore
+from app.jobs import Job, JobState, JobStore
 from app.logs import log_task
 from app.problems import (
     JOB_FAILED,
@@ -28,16 +28,16 @@ from app.problems import (
     ProblemError,
     problem_responses,
 )
-from app.results import as_response, embed_openapi_response, embedded_result, json_result
-from app.routes.embed import MESH_PROBLEMS
+from app.routes.common import MESH_PROBLEMS, as_response, embed_openapi_response
+from app.workers.tasks import JOB_KINDS
 
 router = APIRouter(route_class=StrictFormRoute, tags=["jobs"])
 
 
 class JobStatus(BaseModel):
     id: str
-    kind: Literal["embed", "detect"]
-    state: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    kind: Literal[JOB_KINDS]  # type: ignore[valid-type]  # the job kinds of the task table
+    state: JobState
     progress: float = Field(ge=0, le=1, description="Fraction done, relayed from the worker.")
     created: datetime
     started: datetime | None = None
@@ -81,7 +81,7 @@ _KNOWN: dict[int | str, dict[str, Any]] = problem_responses(NOT_FOUND, UNAUTHORI
 async def create_embed_job(task: EmbedForm, runner: RunnerDep, request: Request) -> JSONResponse:
     """Validate the form now, run the embedding in the background; the result has the same body
     and headers as `POST /v1/embed`."""
-    job = await runner.submit("embed", task, lambda value: embedded_result(value, task.filename))
+    job = await runner.submit(task)
     log_task(request, task, job=job.id)
     return _accepted(job, request)
 
@@ -90,7 +90,7 @@ async def create_embed_job(task: EmbedForm, runner: RunnerDep, request: Request)
              responses={**_CREATE, **problem_responses(*MESH_PROBLEMS, NOT_READY)})
 async def create_detect_job(task: DetectForm, runner: RunnerDep, request: Request) -> JSONResponse:
     """Run a detection in the background; the result is the JSON of `POST /v1/detect`."""
-    job = await runner.submit("detect", task, json_result)
+    job = await runner.submit(task)
     log_task(request, task, job=job.id)
     return _accepted(job, request)
 

@@ -1,5 +1,3 @@
-"""Worker processes: the only place where the engine runs for the service.
-
-``tasks`` is what runs inside a worker (it imports only ``core``, so workers stay lean);
-``pool`` is the parent side.
-"""
+"""The processes that run the engine for the service: the task table (``tasks``), the pool of
+worker processes (``pool``), their set-up (``process``) and what their failures answer
+(``failures``), shared by both jobs backends."""

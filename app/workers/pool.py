@@ -3,8 +3,11 @@
 Why pebble: a worker that crashes, is killed or runs out of time fails only its own task and is
 replaced (a stdlib ``ProcessPoolExecutor`` breaks every pending task when one worker dies).
 
-All bookkeeping happens on the event loop thread; one reader thread turns worker messages
-(see :mod:`app.workers.tasks`) into ``loop.call_soon_threadsafe`` calls.
+All bookkeeping happens on the event loop thread; one reader thread turns worker messages into
+``loop.call_soon_threadsafe`` calls.  The workers report over one shared pipe: ``("hello", None,
+pid)`` when one starts, ``("start", task_id, pid)`` when it takes a task, ``("progress", task_id,
+fraction)`` while it works.  Each message is a single small write, so writers need no lock and a
+killed worker cannot leave the pipe half-written or locked.
 """
 
 from __future__ import annotations
@@ -28,21 +31,12 @@ from typing import Any
 
 from pebble import ProcessExpired, ProcessPool
 
-from app.problems import (
-    BUSY,
-    INTERNAL,
-    TIMED_OUT,
-    WORKER_FAILED,
-    ProblemError,
-    problem_for_core_error,
-    redact,
-)
-from app.workers.tasks import EngineFailure, Task, WorkerBug, WorkerOutOfMemory, execute, init_worker
+from app.problems import WORKER_FAILED, ProblemError
+from app.workers import failures
+from app.workers.process import PRELOAD, init_engine_process, one_blas_thread
+from app.workers.tasks import Task, ThrottledProgress
 
 log = logging.getLogger("meshmark.workers")
-
-#: imported once in the fork server, so that replacing a dead worker costs a fork, not an import
-PRELOAD = ["app.workers.tasks", "numpy", "scipy.sparse", "scipy.spatial"]
 
 ProgressCallback = Callable[[float], None]
 
@@ -62,7 +56,7 @@ class _Entry:
 def _mp_context() -> Any:
     if "forkserver" in multiprocessing.get_all_start_methods():
         ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(PRELOAD)
+        ctx.set_forkserver_preload(list(PRELOAD))
         return ctx
     return multiprocessing.get_context("spawn")
 
@@ -82,7 +76,7 @@ def _alive(pid: int) -> bool:
 
 
 class WorkerPool:
-    """Runs :mod:`app.workers.tasks` tasks in worker processes.
+    """Runs :class:`~app.workers.tasks.Task` s in worker processes.
 
     Parameters
     ----------
@@ -119,9 +113,7 @@ class WorkerPool:
     async def start(self, ready_timeout: float = 30.0) -> None:
         """Start the workers and wait (up to ``ready_timeout``) until each has said hello."""
         self._loop = asyncio.get_running_loop()
-        # one BLAS/OpenMP thread per worker: the pool is the parallelism
-        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-            os.environ.setdefault(var, "1")
+        one_blas_thread()
         self._reader, self._writer = self._ctx.Pipe(duplex=False)
         self._thread = threading.Thread(target=self._read_messages, name="meshmark-worker-messages",
                                         daemon=True)
@@ -154,7 +146,7 @@ class WorkerPool:
         await asyncio.to_thread(self._shutdown, pool)
 
     def _new_pool(self) -> ProcessPool:
-        pool = ProcessPool(max_workers=self.workers, max_tasks=self.max_tasks, initializer=init_worker,
+        pool = ProcessPool(max_workers=self.workers, max_tasks=self.max_tasks, initializer=_init_worker,
                            initargs=(self._writer, self.memory_mb), context=self._ctx)
         pool.active  # noqa: B018 -- starts the worker processes now rather than on first use
         return pool
@@ -243,6 +235,10 @@ class WorkerPool:
         """Seconds until a slot is likely free: the queue ahead divided among the workers."""
         return max(1, min(60, math.ceil(self._mean_seconds * self.pending / self.workers)))
 
+    def refusal(self) -> ProblemError | None:
+        """The ``busy`` problem (429 with ``Retry-After``) when every slot is taken, else None."""
+        return failures.busy(self.slots, self.retry_after()) if self.pending >= self.slots else None
+
     def submit(self, task: Task, *, task_id: str | None = None,
                on_progress: ProgressCallback | None = None) -> asyncio.Task[Any]:
         """Admit ``task`` and return an asyncio task with its result.
@@ -251,12 +247,12 @@ class WorkerPool:
         The returned task raises :class:`ProblemError` for every failure; cancelling it cancels
         the work (killing the worker if it had started).
         """
-        if self.pending >= self.slots:
-            raise ProblemError(BUSY, f"all {self.slots} task slots are taken; retry later",
-                               headers={"Retry-After": str(self.retry_after())})
+        refusal = self.refusal()
+        if refusal is not None:
+            raise refusal
         task_id = task_id or uuid.uuid4().hex
         try:
-            future = self._ensure_pool().schedule(execute, args=(task_id, task), timeout=self.timeout)
+            future = self._ensure_pool().schedule(_execute, args=(task_id, task), timeout=self.timeout)
         except RuntimeError as exc:  # pebble could not start workers
             log.error("cannot schedule %s task: %s", task.kind, exc)
             raise ProblemError(WORKER_FAILED, "no worker process could be started; retry later",
@@ -298,26 +294,54 @@ class WorkerPool:
         return result
 
     def _problem(self, entry: _Entry, exc: Exception) -> ProblemError:
-        if isinstance(exc, EngineFailure):
-            return problem_for_core_error(exc.exc_type, redact(exc.message, entry.key), exc.extensions)
-        if isinstance(exc, WorkerOutOfMemory):
-            return ProblemError(WORKER_FAILED, f"the worker ran out of memory (limit {self.memory_mb} MiB)")
         if isinstance(exc, ProcessExpired):
             self.restarts["crashed"] += 1
             log.warning("worker %s died (exit code %s) during %s task %s; replaced",
                         exc.pid, exc.exitcode, entry.kind, entry.task_id)
-            return ProblemError(WORKER_FAILED, "the worker process died while handling this request; "
-                                "it has been replaced, other requests are unaffected",
-                                headers={"Retry-After": "1"})
-        if isinstance(exc, TimeoutError):
+        elif isinstance(exc, TimeoutError):
             self.restarts["timeout"] += 1
             log.warning("%s task %s timed out after %s s; worker replaced", entry.kind, entry.task_id,
                         self.timeout)
-            return ProblemError(TIMED_OUT, f"the work ran longer than {self.timeout:g} s and was stopped")
-        if isinstance(exc, BrokenProcessPool | RuntimeError):
+        elif isinstance(exc, BrokenProcessPool | RuntimeError):
             log.error("worker pool failure during %s task %s: %s", entry.kind, entry.task_id, exc)
-            return ProblemError(WORKER_FAILED, "the worker pool failed; retry later",
-                                headers={"Retry-After": "1"})
-        details = exc.details if isinstance(exc, WorkerBug) else repr(exc)
-        log.error("%s task %s failed: %s", entry.kind, entry.task_id, redact(details, entry.key))
-        return ProblemError(INTERNAL, "internal error")
+        elif not isinstance(exc, failures.EngineFailure | failures.WorkerOutOfMemory):
+            log.error("%s task %s failed: %s", entry.kind, entry.task_id, failures.details(exc, entry.key))
+        return failures.problem(exc, key=entry.key, memory_mb=self.memory_mb, timeout=self.timeout)
+
+
+# -- in the worker process ------------------------------------------------------------------------
+
+_channel: Connection | None = None
+
+
+def _init_worker(channel: Connection, memory_mb: int) -> None:
+    """Pool initializer: the engine process set-up, then keep the pipe and say hello."""
+    global _channel
+    init_engine_process(memory_mb)
+    _channel = channel
+    _send("hello", None, os.getpid())
+
+
+def _send(kind: str, task_id: str | None, value: float | int) -> None:
+    if _channel is not None:
+        _channel.send((kind, task_id, value))
+
+
+class _Progress(ThrottledProgress):
+    """Forwards progress to the parent over the workers' pipe."""
+
+    def __init__(self, task_id: str) -> None:
+        super().__init__()
+        self.task_id = task_id
+
+    def emit(self, fraction: float) -> None:
+        _send("progress", self.task_id, fraction)
+
+
+def _execute(task_id: str, task: Task) -> Any:
+    """Run one task in the worker; the only function the pool schedules."""
+    _send("start", task_id, os.getpid())
+    try:
+        return task.run(_Progress(task_id))
+    except Exception as exc:
+        raise failures.capture(exc) from None

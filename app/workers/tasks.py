@@ -1,133 +1,80 @@
-"""What runs inside a worker process.
+"""The work the service does, one table: every task kind, what it runs in a worker and how its
+value becomes an answer.  Job kinds (``/v1/jobs/{kind}``) are the kinds marked ``job``.
 
-Tasks are small frozen dataclasses holding the uploaded bytes and the options (never trimesh or
-numpy objects), so that sending one to a worker is one pickle of bytes.  Engine exceptions are
-carried back as :class:`EngineFailure` (class + message), because some of them do not survive a
-pickle round trip on their own.
-
-The worker reports to the parent over one shared pipe: ``("hello", None, pid)`` when it starts,
-``("start", task_id, pid)`` when it takes a task, ``("progress", task_id, fraction)`` while it
-works.  Each message is a single small write, so writers need no lock and a killed worker cannot
-leave the pipe half-written or locked.
+A :class:`Task` holds the uploaded bytes and the engine's :class:`~core.options.Options` (never
+numpy or trimesh objects), so sending one to a worker process is one pickle of bytes.
 """
 
 from __future__ import annotations
 
-import os
-import resource
 import time
-import traceback
+from collections.abc import Callable
 from dataclasses import dataclass
-from multiprocessing.connection import Connection
 from typing import Any
 
+from app.results import Rendered, embedded_result, json_result
 from core import api
-from core.allocator import tune_malloc
-from core.errors import MeshMarkError
 from core.formats import DEFAULT_LIMITS, Limits
 
-_channel: Connection | None = None
-
-
-class EngineFailure(Exception):
-    """The engine rejected the input: ``exc_type`` is the :mod:`core.errors` class."""
-
-    def __init__(self, exc_type: type[BaseException], message: str, extensions: dict[str, Any]) -> None:
-        super().__init__(exc_type, message, extensions)
-        self.exc_type, self.message, self.extensions = exc_type, message, extensions
-
-
-class WorkerOutOfMemory(Exception):
-    """The task hit the worker's address-space limit (RLIMIT_AS)."""
-
-
-class WorkerBug(Exception):
-    """Any other exception in the worker; ``details`` is the traceback text (for the log only)."""
-
-    def __init__(self, summary: str, details: str) -> None:
-        super().__init__(summary, details)
-        self.summary, self.details = summary, details
-
 
 @dataclass(frozen=True)
-class EmbedTask:
+class Task:
+    """One engine call: ``kind`` is a key of :data:`TASKS`."""
+
+    kind: str
     data: bytes
     options: api.Options
     filename: str | None = None
     limits: Limits = DEFAULT_LIMITS
-
-    kind = "embed"
 
     @property
     def key(self) -> str | None:
-        return _text_key(self.options)
+        """The watermark key (for log fingerprints and redaction), if any."""
+        return self.options.key if isinstance(self.options.key, str) else None
 
-    def run(self, progress: api.Progress) -> api.EmbeddedFile:
-        return api.embed(self.data, self.options, filename=self.filename, limits=self.limits,
-                         progress=progress)
+    def run(self, progress: api.Progress) -> Any:
+        """The engine call (in a worker process)."""
+        return TASKS[self.kind].run(self, progress)
 
-
-@dataclass(frozen=True)
-class DetectTask:
-    data: bytes
-    options: api.Options
-    filename: str | None = None
-    limits: Limits = DEFAULT_LIMITS
-
-    kind = "detect"
-
-    @property
-    def key(self) -> str | None:
-        return _text_key(self.options)
-
-    def run(self, progress: api.Progress) -> api.DetectResult:
-        return api.detect(self.data, self.options, filename=self.filename, limits=self.limits,
-                          progress=progress)
+    def render(self, value: Any) -> Rendered:
+        """The answer for the value :meth:`run` returned."""
+        return TASKS[self.kind].render(self, value)
 
 
 @dataclass(frozen=True)
-class CapacityTask:
-    data: bytes
-    options: api.Options
-    filename: str | None = None
-    limits: Limits = DEFAULT_LIMITS
-
-    kind = "capacity"
-    key = None
-
-    def run(self, progress: api.Progress) -> api.CapacityReport:
-        return api.capacity(self.data, self.options, filename=self.filename, limits=self.limits)
+class TaskKind:
+    run: Callable[[Task, api.Progress], Any]
+    render: Callable[[Task, Any], Rendered]
+    #: offered as a background job (``POST /v1/jobs/{kind}``)
+    job: bool
 
 
-def _text_key(options: api.Options) -> str | None:
-    return options.key if isinstance(options.key, str) else None
+def _embed(task: Task, progress: api.Progress) -> api.EmbeddedFile:
+    return api.embed(task.data, task.options, filename=task.filename, limits=task.limits, progress=progress)
 
 
-Task = EmbedTask | DetectTask | CapacityTask
+def _detect(task: Task, progress: api.Progress) -> api.DetectResult:
+    return api.detect(task.data, task.options, filename=task.filename, limits=task.limits, progress=progress)
 
 
-#: CPU priority of the worker processes relative to the server process: when the workers saturate
-#: the CPU, the HTTP process still gets it first (429s, health checks and uploads stay fast)
-WORKER_NICENESS = 10
-
-def init_worker(channel: Connection, memory_mb: int) -> None:
-    """Pool initializer: lower the CPU priority, cap the address space, keep the pipe, say hello."""
-    global _channel
-    try:
-        os.nice(WORKER_NICENESS)
-    except OSError:  # not allowed here: run at the server's priority
-        pass
-    tune_malloc()
-    if memory_mb > 0:
-        limit = memory_mb * 1024 * 1024
-        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
-    _channel = channel
-    _send("hello", None, os.getpid())
+def _capacity(task: Task, progress: api.Progress) -> api.CapacityReport:
+    return api.capacity(task.data, task.options, filename=task.filename, limits=task.limits)
 
 
-def _send(kind: str, task_id: str | None, value: float | int) -> None:
-    if _channel is not None:
-        _channel.send((kind, task_id, value))
+def _rendered_embedding(task: Task, value: api.EmbeddedFile) -> Rendered:
+    return embedded_result(value, task.filename)
+
+
+def _rendered_json(task: Task, value: Any) -> Rendered:
+    return json_result(value)
+
+
+TASKS: dict[str, TaskKind] = {
+    "embed": TaskKind(_embed, _rendered_embedding, job=True),
+    "detect": TaskKind(_detect, _rendered_json, job=True),
+    "capacity": TaskKind(_capacity, _rendered_json, job=False),
+}
+JOB_KINDS = tuple(name for name, kind in TASKS.items() if kind.job)
 
 
 class ThrottledProgress:
@@ -147,28 +94,3 @@ class ThrottledProgress:
 
     def emit(self, fraction: float) -> None:
         raise NotImplementedError
-
-
-class _Progress(ThrottledProgress):
-    """Forwards progress to the parent over the workers' pipe."""
-
-    def __init__(self, task_id: str) -> None:
-        super().__init__()
-        self.task_id = task_id
-
-    def emit(self, fraction: float) -> None:
-        _send("progress", self.task_id, fraction)
-
-
-def execute(task_id: str, task: Task) -> Any:
-    """Run one task in the worker; the only function the pool schedules."""
-    _send("start", task_id, os.getpid())
-    try:
-        return task.run(_Progress(task_id))
-    except MeshMarkError as exc:
-        extensions = {k: v for k, v in vars(exc).items() if isinstance(v, int | str | None)}
-        raise EngineFailure(type(exc), str(exc), extensions) from None
-    except MemoryError:
-        raise WorkerOutOfMemory() from None
-    except Exception as exc:
-        raise WorkerBug(type(exc).__name__, traceback.format_exc()) from None

@@ -34,11 +34,12 @@ from pydantic import ValidationError
 
 from app.cli import main
 from app.config import Settings
-from app.jobs.blobs import LocalBlobStore
-from app.jobs.redis_store import STATES, JobRecords, RedisJobStore, input_key, result_key
-from app.jobs.store import Job, JobResult
-from app.workers.distributed import decode_input, encode_input
-from app.workers.tasks import DetectTask, EmbedTask
+from app.jobs import STATES, Job
+from app.redis_jobs.blobs import LocalBlobStore
+from app.redis_jobs.store import JobRecords, RedisJobStore, input_key, result_key
+from app.redis_jobs.worker import decode_input, encode_input
+from app.results import Rendered
+from app.workers.tasks import Task
 from bench.common import free_port
 from core.formats.base import Limits
 from core.options import Options
@@ -77,8 +78,8 @@ needs_redis = pytest.mark.skipif(_SKIP is not None, reason=_SKIP or "")
 def test_input_blob_round_trip():
     limits = Limits(max_bytes=10, max_vertices=20, max_faces=30, max_meshes=1, max_json_bytes=5)
     options = Options(key="k\u00e9y \u2603", payload="101", method="planes", strength=0.2)
-    for task in (EmbedTask(data=b"OFF\n\x00\xff bytes", filename="a b.off", limits=limits, options=options),
-                 DetectTask(data=b"", options=Options(key="k", method=None))):
+    for task in (Task("embed", b"OFF\n\x00\xff bytes", options, filename="a b.off", limits=limits),
+                 Task("detect", b"", Options(key="k", method=None))):
         assert decode_input(encode_input(task)) == task
 
 
@@ -249,7 +250,7 @@ def test_redis_store_is_a_job_store(redis_env, blob_dir):
             running = await store.update(job.id, state="running", started=job.created + 1, progress=0.5)
             assert running is not None and (running.state, running.progress) == ("running", 0.5)
             assert (await store.count())["running"] == 1
-            now, answer = time.time(), JobResult(b"{}", "application/json", {"X-A": "b"})
+            now, answer = time.time(), Rendered(b"{}", "application/json", {"X-A": "b"})
             done = await store.update(job.id, state="succeeded", progress=1.0, finished=now,
                                       expires=now + 0.5, result=answer)
             assert done is not None and done.state == "succeeded" and done.expires == now + 0.5
@@ -335,7 +336,7 @@ def test_cancel_stops_a_running_job(client, workers, records, big_ply, blob_dir)
 def test_api_restart_loses_no_queued_job(redis_env, workers, sphere_obj):
     """With the workers not consuming, jobs wait in Redis; a new API process finds them, cancels
     one while queued, and the workers run the other once they consume again."""
-    from app.workers.celery_app import make_celery
+    from app.redis_jobs.celery_app import make_celery
 
     celery = make_celery(Settings())
     control = celery.control

@@ -13,7 +13,7 @@ import signal
 import threading
 
 from app.workers.pool import WorkerPool
-from app.workers.tasks import EmbedTask
+from app.workers.tasks import Task
 from core.api import EmbeddedFile, Options
 from tests.app.conftest import KEY, assert_problem, embed, make_client, wait_for, wait_job
 
@@ -24,7 +24,7 @@ def test_progress_is_relayed_from_the_worker(sphere_obj):
         await pool.start()
         try:
             values: list[float] = []
-            result = await pool.submit(EmbedTask(data=sphere_obj, options=Options(key=KEY), filename="s.obj"),
+            result = await pool.submit(Task("embed", sphere_obj, Options(key=KEY), filename="s.obj"),
                                        on_progress=values.append)
             return result, values, pool.pending
         finally:

@@ -1,7 +1,7 @@
 """Jobs in Redis: the metadata of the distributed backend, shared by the API and the workers.
 
 Redis holds what the status route shows (state, progress, timestamps, the problem of a failed job)
-and a few counters; the bytes (upload and result) are in a :class:`~app.jobs.blobs.BlobStore`.
+and a few counters; the bytes (upload and result) are in a :class:`~app.redis_jobs.blobs.BlobStore`.
 Every key starts with a *namespace*, the Celery queue's name, so that two deployments can share one
 Redis database:
 
@@ -18,7 +18,7 @@ later, and a redelivered job that already finished is skipped.  ``attempts`` cou
 worker (a delivery beyond ``MAX_ATTEMPTS`` fails the job instead of running it: no poison loop) and
 ``completions`` counts runs that got to the end (exactly one for every succeeded job).
 
-:class:`RedisJobStore` is the API's asynchronous :class:`~app.jobs.store.JobStore`;
+:class:`RedisJobStore` is the API's asynchronous :class:`~app.jobs.JobStore`;
 :class:`JobRecords` is the workers' synchronous side.
 """
 
@@ -37,11 +37,11 @@ import redis.asyncio as aioredis
 from redis.backoff import ExponentialBackoff
 from redis.retry import Retry
 
-from app.jobs.blobs import BlobStore
-from app.jobs.store import Job, JobResult
-from app.problems import NOT_READY, WORKER_FAILED, ProblemError
-
-STATES = ("queued", "running", "succeeded", "failed", "cancelled")
+from app.jobs import STATES, Job
+from app.problems import NOT_READY, ProblemError
+from app.redis_jobs.blobs import BlobStore
+from app.results import Rendered
+from app.workers.failures import poisoned
 
 #: deliveries of one job to a worker; the next one fails it ("its worker died N times")
 MAX_ATTEMPTS = 2
@@ -159,13 +159,8 @@ def unreachable() -> ProblemError:
                         headers={"Retry-After": "5"})
 
 
-def poisoned_problem(attempts: int) -> ProblemError:
-    return ProblemError(WORKER_FAILED, f"the worker process died {attempts} times while running this job "
-                        "(killed, crashed or out of memory); it is not retried again", attempts=attempts)
-
-
 class RedisJobStore:
-    """The API's view of the jobs in Redis (a :class:`~app.jobs.store.JobStore`).
+    """The API's view of the jobs in Redis (a :class:`~app.jobs.JobStore`).
 
     ``get`` and ``count`` drop expired jobs with their blobs, as :class:`InMemoryJobStore` does.
     A Redis that cannot be reached turns into a ``not-ready`` problem (503 with ``Retry-After``).
@@ -221,12 +216,12 @@ class RedisJobStore:
         return fields
 
     async def update(self, job_id: str, **changes: Any) -> Job | None:
-        """Unconditional field changes, as :class:`~app.jobs.runner.JobRunner` makes them (the
+        """Unconditional field changes, as :class:`~app.memory_jobs.LocalJobRunner` makes them (the
         Celery runner and the workers move jobs with the conditional scripts instead)."""
         job = await self.get(job_id)
         if job is None:
             return None
-        result: JobResult | None = changes.pop("result", None)
+        result: Rendered | None = changes.pop("result", None)
         values = {k: json.dumps(v) if k == "error" else ("" if v is None else v) for k, v in changes.items()}
         if result is not None:
             await asyncio.to_thread(self.blobs.put, result_key(job_id), result.body)
@@ -248,7 +243,7 @@ class RedisJobStore:
             outcome = await self._finish(keys=self.keys.script_keys(job_id), args=args)
         return bool(outcome == "ok")
 
-    async def result(self, job: Job) -> JobResult | None:
+    async def result(self, job: Job) -> Rendered | None:
         if job.state != "succeeded":
             return None
         async with self._redis():
@@ -260,7 +255,7 @@ class RedisJobStore:
         except KeyError:
             return None
         media_type, headers = json.loads(meta)
-        return JobResult(body, media_type, headers)
+        return Rendered(body, media_type, headers)
 
     async def delete(self, job_id: str) -> None:
         async with self._redis():
@@ -320,7 +315,7 @@ class JobRecords:
         return cls(redis.Redis.from_url(url, **client_options()), namespace)
 
     def begin(self, job_id: str, worker: str, pid: int, max_attempts: int = MAX_ATTEMPTS) -> Begin:
-        error = poisoned_problem(max_attempts).to_dict()
+        error = poisoned(max_attempts).to_dict()
         state, attempts = self._begin(keys=self.keys.script_keys(job_id),
                                       args=[job_id, time.time(), worker, pid, max_attempts,
                                             json.dumps(error), EXPIRY_GRACE])
@@ -336,7 +331,7 @@ class JobRecords:
         return state
 
     def finish(self, job_id: str, state: str, *, error: dict[str, Any] | None = None,
-               result: JobResult | None = None, completed: bool = False) -> bool:
+               result: Rendered | None = None, completed: bool = False) -> bool:
         """Move the job to its final state unless it already has one; ``completed`` counts a run
         that got to the end (whether or not the job still wanted its result)."""
         meta = json.dumps([result.media_type, result.headers]) if result is not None else ""

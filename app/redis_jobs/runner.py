@@ -4,8 +4,8 @@
 id, and nothing else, to the Celery queue.  Everything a job is lives in Redis and the blob store,
 so restarting the API loses no job, and any number of API processes can share the workers.
 
-The workers render results themselves (:func:`app.workers.distributed.render`: the same
-functions the routes give the in-process runner), so ``render`` is not used here.
+The workers render results themselves, with the task's own kind (:meth:`app.workers.tasks.Task.render`),
+as the in-process runner does.
 """
 
 from __future__ import annotations
@@ -16,13 +16,12 @@ import uuid
 from typing import Any
 
 from app.config import Settings
-from app.jobs.blobs import BlobStore, LocalBlobStore
-from app.jobs.redis_store import RedisJobStore, input_key, unreachable
-from app.jobs.runner import Render
-from app.jobs.store import Job, JobKind
-from app.problems import BUSY, NOT_READY, ProblemError
-from app.workers.celery_app import TASK_NAME, make_celery
-from app.workers.distributed import encode_input
+from app.jobs import Job, check_room
+from app.problems import NOT_READY, ProblemError
+from app.redis_jobs.blobs import BlobStore, LocalBlobStore
+from app.redis_jobs.celery_app import TASK_NAME, make_celery
+from app.redis_jobs.store import RedisJobStore, input_key, unreachable
+from app.redis_jobs.worker import encode_input
 from app.workers.tasks import Task
 
 log = logging.getLogger("meshmark.jobs")
@@ -42,13 +41,10 @@ class CeleryJobRunner:
         return cls(store, make_celery(settings), blobs, queue=settings.jobs_queue,
                    max_jobs=settings.max_stored_jobs)
 
-    async def submit(self, kind: JobKind, task: Task, render: Render | None = None) -> Job:
+    async def submit(self, task: Task) -> Job:
         """Queue a job for ``task``; ``busy`` when the store is full, ``not-ready`` without Redis."""
-        stored = sum((await self.store.count()).values())
-        if stored >= self.max_jobs:
-            raise ProblemError(BUSY, f"{stored} jobs are stored (limit {self.max_jobs}); fetch or DELETE "
-                               "finished jobs, or wait until they expire", headers={"Retry-After": "5"})
-        job = Job(id=uuid.uuid4().hex, kind=kind)
+        await check_room(self.store, self.max_jobs, retry_after=5)
+        job = Job(id=uuid.uuid4().hex, kind=task.kind)
         await asyncio.to_thread(self.blobs.put, input_key(job.id), encode_input(task))
         try:
             await self.store.add(job)
@@ -68,7 +64,7 @@ class CeleryJobRunner:
 
     async def cancel(self, job_id: str) -> Job | None:
         """Mark an unfinished job ``cancelled`` and revoke its message; a worker already running it
-        stops at its next progress report (see :mod:`app.workers.distributed`)."""
+        stops at its next progress report (see :mod:`app.redis_jobs.worker`)."""
         job = await self.store.get(job_id)
         if job is None or job.done:
             return job

@@ -12,32 +12,28 @@ to the blob store and sends only the job id through the broker.  A worker:
 3. writes the result blob, then *finishes* the job (refused when it was cancelled meanwhile), and
    deletes the input blob.
 
-Failures map to the same problems as in the in-process pool (``app.workers.pool``).
+Failures map to the same problems as in the in-process pool (:mod:`app.workers.failures`).
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import traceback
 from dataclasses import asdict
 from typing import Any
 
 import redis
 
-from app.jobs.blobs import BlobNotFound, BlobStore
-from app.jobs.redis_store import JobRecords, input_key, result_key
-from app.jobs.store import JobResult
-from app.problems import INTERNAL, TIMED_OUT, WORKER_FAILED, ProblemError, problem_for_core_error, redact
-from app.results import embedded_result, json_result
-from app.workers.tasks import DetectTask, EmbedTask, Task, ThrottledProgress
-from core.errors import MeshMarkError
+from app.problems import INTERNAL, ProblemError
+from app.redis_jobs.blobs import BlobNotFound, BlobStore
+from app.redis_jobs.store import JobRecords, input_key, result_key
+from app.results import Rendered
+from app.workers import failures
+from app.workers.tasks import Task, ThrottledProgress
 from core.formats import Limits
 from core.options import Options
 
 log = logging.getLogger("meshmark.workers")
-
-_TASKS: dict[str, type[EmbedTask] | type[DetectTask]] = {"embed": EmbedTask, "detect": DetectTask}
 
 
 class JobCancelled(Exception):
@@ -52,18 +48,11 @@ def encode_input(task: Task) -> bytes:
     return json.dumps(header, separators=(",", ":")).encode() + b"\n" + task.data
 
 
-def decode_input(blob: bytes) -> EmbedTask | DetectTask:
+def decode_input(blob: bytes) -> Task:
     header, _, data = blob.partition(b"\n")
     fields: dict[str, Any] = json.loads(header)
-    return _TASKS[fields["kind"]](data=data, options=Options(**fields["options"]),
-                                  filename=fields["filename"], limits=Limits(**fields["limits"]))
-
-
-def render(task: EmbedTask | DetectTask, value: Any) -> JobResult:
-    """The stored response, as the routes of ``app.routes.jobs`` render it in-process."""
-    if isinstance(task, EmbedTask):
-        return embedded_result(value, task.filename)
-    return json_result(value)
+    return Task(kind=fields["kind"], data=data, options=Options(**fields["options"]),
+                filename=fields["filename"], limits=Limits(**fields["limits"]))
 
 
 class _Progress(ThrottledProgress):
@@ -80,12 +69,12 @@ class _Progress(ThrottledProgress):
 
 
 def _run(records: JobRecords, blobs: BlobStore, job_id: str, *, timeout: float,
-         memory_mb: int) -> tuple[str, dict[str, Any] | None, JobResult | None]:
+         memory_mb: int) -> tuple[str, dict[str, Any] | None, Rendered | None]:
     """The engine call: ``(outcome, problem, result)``, every failure mapped to its problem.  Only
     Redis errors (from the progress reports) get out: the job is then requeued, upload kept."""
     from celery.exceptions import SoftTimeLimitExceeded
 
-    task: EmbedTask | DetectTask | None = None
+    task: Task | None = None
     try:
         try:
             task = decode_input(blobs.get(input_key(job_id)))
@@ -94,27 +83,22 @@ def _run(records: JobRecords, blobs: BlobStore, job_id: str, *, timeout: float,
             missing = ProblemError(INTERNAL, "the job's upload is missing from the blob store")
             return "failed", missing.to_dict(), None
         value = task.run(_Progress(records, job_id))
-        return "succeeded", None, render(task, value)
+        return "succeeded", None, task.render(value)
     except JobCancelled:
         log.info("job %s stopped: no longer running", job_id)
         return "cancelled", None, None
     except SoftTimeLimitExceeded:
         log.warning("job %s timed out after %s s", job_id, timeout)
-        return "failed", ProblemError(TIMED_OUT, f"the work ran longer than {timeout:g} s and was "
-                                      "stopped").to_dict(), None
-    except MeshMarkError as exc:
-        key = task.key if task is not None else None
-        extensions = {k: v for k, v in vars(exc).items() if isinstance(v, int | str | None)}
-        return "failed", problem_for_core_error(type(exc), redact(str(exc), key), extensions).to_dict(), None
-    except MemoryError:
-        return "failed", ProblemError(WORKER_FAILED, f"the worker ran out of memory (limit {memory_mb} "
-                                      "MiB)").to_dict(), None
+        return "failed", failures.timed_out(timeout).to_dict(), None
     except (redis.ConnectionError, redis.TimeoutError):
         raise
-    except Exception:
+    except Exception as exc:
+        failure = failures.capture(exc)
         key = task.key if task is not None else None
-        log.error("job %s failed: %s", job_id, redact(traceback.format_exc(), key))
-        return "failed", ProblemError(INTERNAL, "internal error").to_dict(), None
+        if isinstance(failure, failures.WorkerBug):
+            log.error("job %s failed: %s", job_id, failures.details(failure, key))
+        problem = failures.problem(failure, key=key, memory_mb=memory_mb, timeout=timeout)
+        return "failed", problem.to_dict(), None
 
 
 def execute_job(records: JobRecords, blobs: BlobStore, job_id: str, *, worker: str, pid: int,

@@ -9,7 +9,7 @@ Delivery guarantees, as configured here:
 
 - ``acks_late`` + ``reject_on_worker_lost``: the broker forgets a job only once a worker has
   finished it; a child process killed mid-job (SIGKILL, OOM killer) puts its job back in the
-  queue for another child.  The attempt counter in Redis (:mod:`app.jobs.redis_store`) ends the
+  queue for another child.  The attempt counter in Redis (:mod:`app.redis_jobs.store`) ends the
   loop: the third delivery fails the job ("its worker died 2 times").
 - A whole worker machine that dies takes its children with it (Celery sets ``PDEATHSIG``); Redis
   redelivers its jobs ``visibility_timeout`` after they were taken, which is set just above the
@@ -22,10 +22,8 @@ Delivery guarantees, as configured here:
 
 from __future__ import annotations
 
-import importlib
 import logging
 import os
-import resource
 import time
 from typing import Any
 
@@ -35,12 +33,11 @@ from celery.exceptions import Reject, TimeLimitExceeded
 from celery.signals import worker_process_init
 
 from app.config import Settings
-from app.jobs.blobs import LocalBlobStore
-from app.jobs.redis_store import JobRecords, input_key
-from app.problems import TIMED_OUT, ProblemError
-from app.workers.distributed import execute_job
-from app.workers.tasks import WORKER_NICENESS
-from core.allocator import tune_malloc
+from app.redis_jobs.blobs import LocalBlobStore
+from app.redis_jobs.store import JobRecords, input_key
+from app.redis_jobs.worker import execute_job
+from app.workers import failures
+from app.workers.process import init_engine_process, preload
 
 log = logging.getLogger("meshmark.workers")
 
@@ -49,9 +46,6 @@ TASK_NAME = "meshmark.run_job"
 #: seconds between the soft and the hard time limit, and between the hard limit and redelivery
 HARD_LIMIT_GRACE = 10
 VISIBILITY_GRACE = 60
-
-#: imported by the worker before it forks its children (as ``app.workers.pool.PRELOAD``)
-PRELOAD = ["numpy", "scipy.sparse", "scipy.spatial", "trimesh", "core.pipeline"]
 
 
 def celery_config(settings: Settings) -> dict[str, Any]:
@@ -115,7 +109,7 @@ class JobTask(Task):  # type: ignore[misc]
         """Runs in the worker's main process for a hard time limit (the child was killed)."""
         if isinstance(exc, TimeLimitExceeded):
             timeout = self.resources.settings.job_timeout_seconds
-            error = ProblemError(TIMED_OUT, f"the work ran longer than {timeout:g} s and was stopped")
+            error = failures.timed_out(timeout)
             self.resources.records.finish(task_id, "failed", error=error.to_dict())
             self.resources.blobs.delete(input_key(task_id))
 
@@ -143,32 +137,17 @@ def make_celery(settings: Settings) -> Celery:
     return celery
 
 
-def _init_child(memory_mb: int) -> None:
-    """Each child, as the in-process pool's workers: a lower CPU priority (an API process on the
-    same machine stays responsive), malloc kept from returning memory after every job, an
-    address-space cap."""
-    try:
-        os.nice(WORKER_NICENESS)
-    except OSError:
-        pass
-    tune_malloc()
-    if memory_mb > 0:
-        limit = memory_mb * 1024 * 1024
-        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
-
-
 def run_worker(settings: Settings, *, concurrency: int | None = None, loglevel: str | None = None) -> None:
     """Run a Celery worker for ``settings.jobs_queue`` in this process until it is stopped.
 
     Set ``OMP_NUM_THREADS=1`` (and the OpenBLAS/MKL equivalents) before numpy is first imported, as
     ``meshmark worker`` does: the child processes are the parallelism.
     """
-    for module in PRELOAD:
-        importlib.import_module(module)
+    preload()
     LocalBlobStore(settings.blob_dir)  # fail now, not on the first job, when the directory is unusable
     celery = make_celery(settings)
     memory_mb = settings.worker_memory_mb
-    worker_process_init.connect(lambda **_: _init_child(memory_mb), weak=False)
+    worker_process_init.connect(lambda **_: init_engine_process(memory_mb), weak=False)
     processes = concurrency or settings.worker_concurrency or os.cpu_count() or 1
     celery.worker_main([
         "worker", "--loglevel", (loglevel or settings.log_level).upper(), "--concurrency", str(processes),

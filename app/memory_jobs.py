@@ -1,0 +1,146 @@
+"""The ``memory`` jobs backend (the default): jobs in this process's memory, run by its worker pool.
+
+Jobs vanish on restart and are not shared between server processes; the ``redis`` backend
+(:mod:`app.redis_jobs`) keeps them in Redis and runs them on Celery workers instead.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+import uuid
+from dataclasses import replace
+from typing import Any
+
+from app.jobs import STATES, Job, check_room
+from app.problems import INTERNAL, ProblemError
+from app.results import Rendered
+from app.workers.pool import WorkerPool
+from app.workers.tasks import Task
+
+log = logging.getLogger("meshmark.jobs")
+
+
+class InMemoryJobStore:
+    """A dict of immutable :class:`~app.jobs.Job` values; expired jobs are dropped when touched or
+    counted."""
+
+    def __init__(self) -> None:
+        self._jobs: dict[str, Job] = {}
+
+    def _purge(self) -> None:
+        now = time.time()
+        for job_id in [j.id for j in self._jobs.values() if j.expires is not None and j.expires <= now]:
+            del self._jobs[job_id]
+
+    async def add(self, job: Job) -> None:
+        self._jobs[job.id] = job
+
+    async def get(self, job_id: str) -> Job | None:
+        job = self._jobs.get(job_id)
+        if job is not None and job.expires is not None and job.expires <= time.time():
+            del self._jobs[job_id]
+            return None
+        return job
+
+    async def update(self, job_id: str, **changes: Any) -> Job | None:
+        job = await self.get(job_id)
+        if job is None:
+            return None
+        job = self._jobs[job_id] = replace(job, **changes)
+        return job
+
+    async def delete(self, job_id: str) -> None:
+        self._jobs.pop(job_id, None)
+
+    async def result(self, job: Job) -> Rendered | None:
+        return job.result
+
+    async def count(self) -> dict[str, int]:
+        self._purge()
+        counts: dict[str, int] = dict.fromkeys(STATES, 0)
+        for job in self._jobs.values():
+            counts[job.state] += 1
+        return counts
+
+
+class LocalJobRunner:
+    """Admits a task into the worker pool, follows it, records the outcome in the store."""
+
+    def __init__(self, store: InMemoryJobStore, pool: WorkerPool, *, ttl: float, max_jobs: int) -> None:
+        self.store, self.pool, self.ttl, self.max_jobs = store, pool, ttl, max_jobs
+        self._watchers: set[asyncio.Task[None]] = set()
+
+    async def submit(self, task: Task) -> Job:
+        """Create a job for ``task``; raises a ``busy`` problem when the pool or the store is full."""
+        await check_room(self.store, self.max_jobs, self.pool.retry_after())
+        job = Job(id=uuid.uuid4().hex, kind=task.kind)
+        await self.store.add(job)
+        try:
+            work = self.pool.submit(task, task_id=job.id, on_progress=lambda f: self._progress(job.id, f))
+        except BaseException:
+            await self.store.delete(job.id)
+            raise
+        self._watch(self._follow(job.id, work, task))
+        return job
+
+    def _watch(self, coroutine: Any) -> None:
+        watcher = asyncio.ensure_future(coroutine)
+        self._watchers.add(watcher)
+        watcher.add_done_callback(self._watchers.discard)
+
+    def _progress(self, job_id: str, fraction: float) -> None:
+        self._watch(self._record_progress(job_id, fraction))
+
+    async def _record_progress(self, job_id: str, fraction: float) -> None:
+        job = await self.store.get(job_id)
+        if job is None or job.done:
+            return
+        if job.state == "queued":
+            await self.store.update(job_id, state="running", started=time.time(), progress=fraction)
+        elif fraction > job.progress:
+            await self.store.update(job_id, progress=fraction)
+
+    async def _follow(self, job_id: str, work: asyncio.Task[Any], task: Task) -> None:
+        try:
+            value = await work
+        except ProblemError as exc:
+            await self._finish(job_id, state="failed", error=exc.to_dict())
+            return
+        except asyncio.CancelledError:
+            await self._finish(job_id, state="cancelled")
+            return
+        try:
+            result = task.render(value)
+        except Exception:
+            log.exception("job %s: could not render the result", job_id)
+            error = ProblemError(INTERNAL, "internal error").to_dict()
+            await self._finish(job_id, state="failed", error=error)
+            return
+        await self._finish(job_id, state="succeeded", progress=1.0, result=result)
+
+    async def _finish(self, job_id: str, **changes: Any) -> None:
+        job = await self.store.get(job_id)
+        if job is None or job.done:
+            return
+        now = time.time()
+        await self.store.update(job_id, finished=now, expires=now + self.ttl, **changes)
+        log.info("job %s (%s) %s", job_id, job.kind, changes["state"])
+
+    async def cancel(self, job_id: str) -> Job | None:
+        """Stop an unfinished job (its record stays, state ``cancelled``, until it expires)."""
+        job = await self.store.get(job_id)
+        if job is None or job.done:
+            return job
+        self.pool.cancel(job_id)
+        await self._finish(job_id, state="cancelled")
+        return await self.store.get(job_id)
+
+    async def ready(self) -> dict[str, Any]:
+        return {}  # the pool's own readiness is checked by /readyz
+
+    async def close(self) -> None:
+        for watcher in list(self._watchers):
+            watcher.cancel()
+        await asyncio.gather(*self._watchers, return_exceptions=True)
