@@ -13,10 +13,8 @@ import json
 import os
 import platform
 import shlex
-import socket
 import subprocess
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -68,40 +66,6 @@ def json_child(module: str, args: list[str], timeout: float) -> dict[str, Any]:
         return {"error": (p.stderr.strip().splitlines() or ["?"])[-1][:300]}
     lines = p.stdout.strip().splitlines()
     return json.loads(lines[-1]) if lines else {}
-
-
-#: the CLI installed beside this interpreter (``pip install -e .``)
-MESHMARK = Path(sys.executable).with_name("meshmark")
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nothing listens on right now."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def start_server(port: int, env: dict[str, str], out: Any = subprocess.DEVNULL, args: tuple[str, ...] = (),
-                 timeout: float = 60) -> subprocess.Popen[bytes]:
-    """``meshmark serve --port PORT *args`` with ``env`` added to this environment, its output
-    (stdout and stderr) to ``out``; returns once ``/readyz`` answers 200.  Raises ``RuntimeError``
-    (the process killed) when it exits first or is not ready within ``timeout`` seconds."""
-    import httpx
-
-    proc = subprocess.Popen([str(MESHMARK), "serve", "--port", str(port), *args], env={**os.environ, **env},
-                            stdout=out, stderr=subprocess.STDOUT)
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
-                return proc
-        except httpx.TransportError:
-            pass
-        if proc.poll() is not None or time.monotonic() > deadline:
-            proc.kill()
-            proc.wait()
-            raise RuntimeError("meshmark serve did not become ready")
-        time.sleep(0.1)
 
 
 _TICK = os.sysconf("SC_CLK_TCK")

@@ -5,8 +5,8 @@
 Every answer must be a 200 or a documented 4xx problem; a 5xx, a non-problem error body or an
 answer slower than ``--slow`` seconds is a *finding*, saved under ``bench/results/fuzz_findings/``
 (file + what came back) so it can be replayed.  The app runs in-process (ASGI, two real worker
-processes).  The mutation operators are shared with the quick test in
-``tests/app/test_hardening_fuzz.py``.
+processes).  The mutation operators (:mod:`tests.mutations`) and the judge of an answer
+(:mod:`tests.app.oracles`) are those of the quick test in ``tests/app/test_hardening_fuzz.py``.
 """
 
 from __future__ import annotations
@@ -21,76 +21,11 @@ from typing import Any
 
 from bench.common import DEFAULT_OUT, mesh_path
 from bench.hardening import record, run_info
+from tests.app.oracles import ROUTES, check_answer
+from tests.mutations import OPS, TOKENS, Op, apply_ops
 
 #: small and medium shared meshes, one or more per format
 SEEDS = ["teapot.stl", "monkey.glb", "sink.3ds", "spot.obj", "fandisk.off", "Duck.glb", "horse.ply"]
-#: tokens that tend to matter to a parser (counts, numbers, keywords, separators)
-TOKENS = [
-    b"nan",
-    b"-1",
-    b"0",
-    b"4000000000",
-    b"1e999",
-    b"/",
-    b"//",
-    b"\r\n",
-    b"\n",
-    b"#",
-    b"\x00",
-    b" ",
-    b"f",
-    b"v",
-    b"end_header\n",
-    b"element face 3\n",
-    b"255",
-    b"-0",
-    b"1.5",
-    b"\xff",
-    b'"',
-    b"{",
-    b"}",
-    b"[",
-    b"]",
-    b'"uri":"../x.bin"',
-    b"data:;base64,",
-    b"\xff\xff\xff\xff",
-    b"\x00\x00\x00\x80",
-    b"glTF",
-    b"MM",
-    b"solid",
-    b"facet",
-]
-OPS = ("flip", "truncate", "insert", "delete", "token", "duplicate", "int32")
-ROUTES = ("/v1/embed", "/v1/detect", "/v1/capacity")
-
-Op = tuple[str, float, bytes]
-
-
-def apply_ops(data: bytes, ops: list[Op]) -> bytes:
-    """Apply mutation operators; ``where`` in [0, 1] is a position relative to the current size."""
-    for op, where, blob in ops:
-        i = min(int(where * len(data)), max(len(data) - 1, 0))
-        if op == "flip" and data:
-            data = data[:i] + bytes([data[i] ^ (blob[0] if blob and blob[0] else 1)]) + data[i + 1 :]
-        elif op == "truncate":
-            data = data[:i]
-        elif op == "insert":
-            data = data[:i] + blob + data[i:]
-        elif op == "delete":
-            data = data[:i] + data[i + max(1, len(blob)) :]
-        elif op == "token":  # replace the whitespace-delimited token at i
-            j = data.find(b" ", i)
-            data = data[:i] + blob + (data[j:] if j >= 0 else b"")
-        elif op == "duplicate":  # repeat a slice (lists, chunks, lines)
-            n = 1 + len(blob) * 64
-            data = data[:i] + data[i : i + n] * 4 + data[i + n :]
-        elif op == "int32" and len(data) >= 4:  # overwrite a little-endian count or offset
-            i = min(i, len(data) - 4)
-            value = int.from_bytes((blob * 4)[:4] or b"\xff\xff\xff\xff", "little")
-            data = data[:i] + value.to_bytes(4, "little") + data[i + 4 :]
-    return data
-
-
 def random_ops(rng: random.Random) -> list[Op]:
     ops = []
     for _ in range(rng.randint(1, 4)):
@@ -98,20 +33,6 @@ def random_ops(rng: random.Random) -> list[Op]:
         blob = rng.choice(TOKENS) if rng.random() < 0.5 else rng.randbytes(rng.randint(1, 6))
         ops.append((rng.choice(OPS), where, blob))
     return ops
-
-
-def check_answer(response: Any) -> str | None:
-    """What is wrong with an answer, or ``None``: 200, or a 4xx problem document."""
-    if response.status_code == 200:
-        return None
-    if response.status_code >= 500:
-        return f"{response.status_code}: {response.text[:300]}"
-    if response.headers.get("content-type") != "application/problem+json":
-        return f"{response.status_code} without a problem document"
-    body = response.json()
-    if not str(body.get("type", "")).startswith("https://meshmark.dev/problems/"):
-        return f"{response.status_code} with type {body.get('type')!r}"
-    return None
 
 
 def main(argv: list[str] | None = None) -> int:

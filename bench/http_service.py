@@ -24,8 +24,9 @@ from pathlib import Path
 
 import httpx
 
-from bench.common import MESHMARK, child_pids, cpu_seconds, free_port, meshes_dir, start_server
+from bench.common import child_pids, cpu_seconds, meshes_dir
 from bench.load import RawClient, form_body
+from tests.app.real_server import MESHMARK, free_port, start_server
 
 ROOT = Path(__file__).resolve().parents[1]
 class Server:

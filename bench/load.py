@@ -36,8 +36,9 @@ from typing import Any
 
 import httpx
 
-from bench.common import DEFAULT_OUT, free_port, mesh_path, start_server
+from bench.common import DEFAULT_OUT, mesh_path
 from bench.hardening import record, run_info
+from tests.app.real_server import free_port, start_server
 
 KEY = "load-test key 2f6a"
 WORKERS = 2

@@ -1,5 +1,6 @@
 """Dependencies run one way: no import cycle between the modules of ``core`` and ``app``, nor
-between their packages, and ``core`` imports nothing of ``app`` or ``bench``."""
+between their packages; ``core`` imports nothing of ``app`` or ``bench``, and the tests nothing of
+``bench`` (but its own tests)."""
 
 from __future__ import annotations
 
@@ -54,6 +55,14 @@ def test_core_does_not_import_the_service() -> None:
     for module, deps in import_graph("core", "app", "bench").items():
         if module.startswith("core"):
             assert not {d for d in deps if not d.startswith("core")}, module
+
+
+def test_tests_do_not_import_the_benchmarks() -> None:
+    """Only the benchmarks' own tests (``tests/bench``) may; the benchmarks reuse test helpers,
+    never the other way round."""
+    for module, deps in import_graph("tests", "bench").items():
+        if module.startswith("tests") and not module.startswith("tests.bench"):
+            assert not {d for d in deps if d.startswith("bench")}, module
 
 
 def test_a_cycle_is_found() -> None:

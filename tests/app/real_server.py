@@ -1,21 +1,55 @@
 """A real ``meshmark serve`` process for the hardening tests: started the way the README says, on a
 free port, with its stderr kept for inspection; and raw-socket helpers for requests no HTTP
-client library would send."""
+client library would send.  The load and HTTP benchmarks start their servers with the same
+:func:`start_server`."""
 
 from __future__ import annotations
 
+import os
 import signal
 import socket
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+import httpx
 import pytest
 
-from bench.common import MESHMARK, free_port, start_server
+#: the CLI installed beside this interpreter (``pip install -e .``)
+MESHMARK = Path(sys.executable).with_name("meshmark")
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def start_server(port: int, env: dict[str, str], out: Any = subprocess.DEVNULL, args: tuple[str, ...] = (),
+                 timeout: float = 60) -> subprocess.Popen[bytes]:
+    """``meshmark serve --port PORT *args`` with ``env`` added to this environment, its output
+    (stdout and stderr) to ``out``; returns once ``/readyz`` answers 200.  Raises ``RuntimeError``
+    (the process killed) when it exits first or is not ready within ``timeout`` seconds."""
+    proc = subprocess.Popen([str(MESHMARK), "serve", "--port", str(port), *args], env={**os.environ, **env},
+                            stdout=out, stderr=subprocess.STDOUT)
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
+                return proc
+        except httpx.TransportError:
+            pass
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            proc.wait()
+            raise RuntimeError("meshmark serve did not become ready")
+        time.sleep(0.1)
 
 
 @dataclass

@@ -1,6 +1,7 @@
-"""A short fuzz run over the upload path: real meshes, mutated by hypothesis with the operators
-of ``bench/fuzz_upload.py`` (whose long run is recorded in ``bench/results/hardening.md``), sent
-through the HTTP API.  Every answer is a 200 or a documented 4xx problem: never a 5xx."""
+"""A short fuzz run over the upload path: real meshes, mutated by hypothesis with the operators of
+:mod:`tests.mutations`, sent through the HTTP API.  Every answer is a 200 or a documented 4xx
+problem: never a 5xx.  ``bench/fuzz_upload.py`` is the long run of the same (results in
+``bench/results/hardening.md``)."""
 
 from __future__ import annotations
 
@@ -12,9 +13,10 @@ from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from bench.fuzz_upload import OPS, ROUTES, TOKENS, apply_ops, check_answer
 from tests.app.conftest import make_client
+from tests.app.oracles import ROUTES, check_answer
 from tests.conftest import shared_mesh_path
+from tests.mutations import OPS, TOKENS, apply_ops
 
 CANARY_KEY = "CANARY-KEY-0e9d-never-in-a-log"
 SEEDS = ["teapot.stl", "monkey.glb", "sink.3ds", "spot.obj", "fandisk.off"]

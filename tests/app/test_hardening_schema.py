@@ -1,8 +1,8 @@
 """A short schemathesis run against the committed ``openapi/openapi.json``, through the ASGI app
 with real workers: no 5xx, and every answer (status, content type, headers, body) as the document
-says.  The checks and their two multipart adaptations are in ``bench/schemathesis_run.py``, whose
-long run is recorded in ``bench/results/hardening.md``; set ``MESHMARK_SCHEMATHESIS_EXAMPLES`` for
-a longer run here."""
+says.  The checks and their two multipart adaptations are in :mod:`tests.app.oracles`;
+``bench/schemathesis_run.py`` is the long run (``bench/results/hardening.md``); set
+``MESHMARK_SCHEMATHESIS_EXAMPLES`` for a longer run here."""
 
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ from schemathesis.python import asgi
 from app.config import Settings
 from app.main import create_app
 from app.openapi import OPENAPI_PATH
-from bench.schemathesis_run import call_and_check, load_schema
 from tests.app.conftest import make_client
+from tests.app.oracles import call_and_check, load_schema
 
 EXAMPLES = int(os.environ.get("MESHMARK_SCHEMATHESIS_EXAMPLES", "20"))
 

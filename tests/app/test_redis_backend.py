@@ -40,11 +40,11 @@ from app.redis_jobs.store import JobRecords, RedisJobStore, input_key, result_ke
 from app.redis_jobs.worker import decode_input, encode_input
 from app.results import Rendered
 from app.workers.tasks import Task
-from bench.common import free_port
 from core.formats.base import Limits
 from core.options import Options
 from tests.app import test_jobs as memory_jobs
 from tests.app.conftest import KEY, assert_problem, detect, make_client, wait_for, wait_job
+from tests.app.real_server import free_port
 
 REDIS_URL = os.environ.get("MESHMARK_TEST_REDIS_URL", "redis://127.0.0.1:6379/15")
 NAMESPACE = f"mmtest-{os.getpid()}-{uuid.uuid4().hex[:8]}"  # queue name and key prefix of this run

@@ -74,6 +74,7 @@ def capacity_file_part(part) -> int:
     return int(np.unique(analyse(part.vertices, part.faces, "truck", "ellipsoids").slot_hash).size)
 
 
+@pytest.mark.slow
 def test_no_false_positives_in_1000_trials() -> None:
     """Wrong keys on marked meshes and any key on unmarked meshes: never detected."""
     names = ["monkey.glb", "sink.3ds", "spot.obj", "Duck.glb", "decimated-max.obj", "fandisk.off"]
