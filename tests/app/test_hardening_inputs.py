@@ -25,6 +25,7 @@ from fastapi.testclient import TestClient
 from app.problems import CORE_ERRORS
 from tests.app import hostile as H
 from tests.app.conftest import assert_problem, make_client
+from tests.core.formats import helpers as F
 from tests.core.formats.test_text_formats import MALFORMED
 
 CANARY_KEY = "CANARY-KEY-5d2c-never-in-a-log"
@@ -90,7 +91,7 @@ def canaries(tmp_path, monkeypatch) -> Iterator[dict[str, Any]]:
     the cwd of the fork server they come from, so there the absolute and ``file://`` URIs are the
     ones that point at the canaries."""
     v, f = H.icosphere(4)
-    meta, blob = H.gltf_document(v, f)
+    meta, blob = F.gltf_document(v, f)
     (tmp_path / "canary.bin").write_bytes(blob + H.CANARY_MARKER)
     (tmp_path / "canary.mtl").write_bytes(b"newmtl red\n# " + H.CANARY_MARKER + b"\n")
     os.mkfifo(tmp_path / "canary.fifo")
@@ -112,7 +113,7 @@ def _external_uris(c: dict[str, Any], name: str) -> list[str]:
 def test_gltf_external_buffer_uri_is_refused_unopened(client, canaries, container, which):
     meta = json.loads(json.dumps(canaries["meta"]))
     meta["buffers"][0]["uri"] = _external_uris(canaries, "canary.bin")[which]
-    data = H.gltf_text(meta) if container == "gltf" else H.glb(meta, None)
+    data = F.to_gltf(meta) if container == "gltf" else F.to_glb(meta, None)
     body = refused(post(client, f"m.{container}", data), 422, "malformed-mesh")
     assert "external buffer refused" in body["detail"]
 
@@ -120,7 +121,7 @@ def test_gltf_external_buffer_uri_is_refused_unopened(client, canaries, containe
 def test_gltf_external_image_uris_are_kept_and_never_opened(client, canaries):
     uris = _external_uris(canaries, "canary.bin") + [str(canaries["dir"] / "canary.fifo"),
                                                      "../canary.fifo"]
-    data = H.gltf_text(H.with_images(canaries["meta"], uris), canaries["blob"])
+    data = F.to_gltf(H.with_images(canaries["meta"], uris), canaries["blob"])
     response = post(client, "m.gltf", data)
     assert response.status_code == 200, response.text[:500]
     assert response.elapsed_seconds < 10  # a FIFO opened for reading would block until the time limit
@@ -128,14 +129,14 @@ def test_gltf_external_image_uris_are_kept_and_never_opened(client, canaries):
 
 
 def test_gltf_accessor_with_huge_count_and_no_buffer_view(client):
-    meta, blob = H.gltf_document(*H.icosphere(1))
+    meta, blob = F.gltf_document(*H.icosphere(1))
     meta["accessors"][0] = {"componentType": 5126, "count": 2**40, "type": "VEC3"}
-    for data, name in ((H.glb(meta, blob), "m.glb"), (H.gltf_text(meta, blob), "m.gltf")):
+    for data, name in ((F.to_glb(meta, blob), "m.glb"), (F.to_gltf(meta, blob), "m.gltf")):
         assert "no bufferView" in refused(post(client, name, data), 422, "malformed-mesh")["detail"]
 
 
 def test_glb_chunk_length_beyond_the_file(client):
-    data = bytearray(H.glb(*H.gltf_document(*H.icosphere(1))))
+    data = bytearray(F.to_glb(*F.gltf_document(*H.icosphere(1))))
     json_length = int.from_bytes(data[12:16], "little")
     data[20 + json_length: 24 + json_length] = (2**31).to_bytes(4, "little")  # BIN chunk length
     assert "past the end" in refused(post(client, "m.glb", bytes(data)), 422, "malformed-mesh")["detail"]
@@ -152,18 +153,18 @@ def test_deeply_nested_json(client, container):
 
 def test_oversized_and_broken_base64(client):
     v, f = H.icosphere(4)
-    meta, blob = H.gltf_document(v, f)
+    meta, blob = F.gltf_document(v, f)
     # 3 MB of base64 that breaks at the very end: found without decoding into a mesh
     broken = json.loads(json.dumps(meta))
-    broken["buffers"][0]["uri"] = H.data_uri(blob + bytes(2_000_000))[:-8] + "@@@@@@@@"
+    broken["buffers"][0]["uri"] = F.data_uri(blob + bytes(2_000_000))[:-8] + "@@@@@@@@"
     refused(post(client, "m.gltf", json.dumps(broken).encode()), 422, "malformed-mesh")
     # a buffer declared far larger than its data
     short = json.loads(json.dumps(meta))
-    short["buffers"][0].update(byteLength=2**40, uri=H.data_uri(blob))
+    short["buffers"][0].update(byteLength=2**40, uri=F.data_uri(blob))
     refused(post(client, "m.gltf", json.dumps(short).encode()), 422, "malformed-mesh")
     # base64 beyond the upload limit: 413 from Content-Length, before anything is parsed
     with make_client(workers=1, max_upload_bytes=256 * 1024) as small:
-        response = post(small, "m.gltf", H.gltf_text(meta, blob + bytes(1_000_000)))
+        response = post(small, "m.gltf", F.to_gltf(meta, blob + bytes(1_000_000)))
         assert refused(response, 413, "too-large")["max_body_bytes"] == 256 * 1024 + 64 * 1024
 
 
@@ -171,7 +172,7 @@ def test_oversized_and_broken_base64(client):
 
 @pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian", "binary_big_endian"])
 def test_ply_declaring_4e9_vertices(client, fmt):
-    data = H.ply_header(fmt, 4_000_000_000, 1) + bytes(64)
+    data = F.ply_header(fmt, 4_000_000_000, 1) + bytes(64)
     body = refused(post(client, "m.ply", data), 413, "too-large")
     assert (body["what"], body["value"]) == ("vertices", 4_000_000_000)
 
@@ -188,17 +189,17 @@ def _drum(n: int = 255) -> tuple[np.ndarray, list[list[int]]]:
 
 def test_ply_face_lists_of_255_entries(client):
     verts, faces = _drum(255)
-    for data in (H.ply_binary(verts, faces), H.ply_ascii(verts, faces)):
+    for data in (F.ply_binary(verts, faces), F.ply_ascii(verts, faces)):
         # a legal file: fan-triangulated, then too coarse for the 56-bit code
         body = refused(post(client, "drum.ply", data), 422, "too-little-capacity")
         assert body["carriers"] < body["needed"]
         report = post(client, "drum.ply", data, route="/v1/capacity")
         assert report.status_code == 200 and report.json()["max_payload_bits"] == 0
     # a 255-entry list that the file ends inside of
-    truncated = H.ply_binary(verts[:4], [[0, 1, 2]])[:-13] + bytes([255]) + bytes(12)
+    truncated = F.ply_binary(verts[:4], [[0, 1, 2]])[:-13] + bytes([255]) + bytes(12)
     assert "ends inside" in refused(post(client, "t.ply", truncated), 422, "malformed-mesh")["detail"]
     # 255 entries pointing past the vertices
-    wild = H.ply_binary(verts[:4], [list(range(255))])
+    wild = F.ply_binary(verts[:4], [list(range(255))])
     refused(post(client, "w.ply", wild), 422, "malformed-mesh")
 
 
@@ -206,13 +207,13 @@ TETRA = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
 
 
 @pytest.mark.parametrize(("name", "data"), [
-    ("ply-ascii-out-of-range", H.ply_ascii(TETRA, [[0, 1, 2], [0, 1, 4]])),
-    ("ply-ascii-negative", H.ply_ascii(TETRA, [[0, 1, 2], [0, -1, 3]])),
-    ("ply-binary-out-of-range", H.ply_binary(TETRA, [[0, 1, 2], [0, 1, 2**31 - 1]])),
-    ("ply-binary-negative", H.ply_binary(TETRA, [[0, 1, 2], [-2**31, 1, 3]])),
-    ("ply-binary-uint-max", H.ply_binary(TETRA, [[0, 1, 2], [2**32 - 1, 1, 3]], index="I")),
-    ("obj-out-of-range", H.obj_text(TETRA, [[0, 1, 2], [0, 1, 99]])),
-    ("obj-negative-too-far", H.obj_text(TETRA, [[0, 1, 2]]) + b"f -1 -2 -9\n"),
+    ("ply-ascii-out-of-range", F.ply_ascii(TETRA, [[0, 1, 2], [0, 1, 4]])),
+    ("ply-ascii-negative", F.ply_ascii(TETRA, [[0, 1, 2], [0, -1, 3]])),
+    ("ply-binary-out-of-range", F.ply_binary(TETRA, [[0, 1, 2], [0, 1, 2**31 - 1]])),
+    ("ply-binary-negative", F.ply_binary(TETRA, [[0, 1, 2], [-2**31, 1, 3]])),
+    ("ply-binary-uint-max", F.ply_binary(TETRA, [[0, 1, 2], [2**32 - 1, 1, 3]], index="I")),
+    ("obj-out-of-range", F.obj_text(TETRA, [[0, 1, 2], [0, 1, 99]])),
+    ("obj-negative-too-far", F.obj_text(TETRA, [[0, 1, 2]]) + b"f -1 -2 -9\n"),
     ("off-negative", b"OFF\n4 2 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 1 2\n3 0 -1 3\n"),
 ], ids=lambda x: x if isinstance(x, str) else "")
 def test_out_of_range_and_negative_indices(client, name, data):
@@ -227,12 +228,12 @@ def _with(vertex: list[float]) -> np.ndarray:
 
 
 @pytest.mark.parametrize(("name", "data"), [
-    ("ply-binary-nan", H.ply_binary(_with([0, np.nan, 0]), [[0, 1, 2], [0, 1, 3]])),
-    ("ply-binary-inf", H.ply_binary(_with([0, np.inf, 0]), [[0, 1, 2], [0, 1, 3]])),
-    ("ply-ascii-nan", H.ply_ascii(_with([0, np.nan, 0]), [[0, 1, 2], [0, 1, 3]])),
-    ("obj-inf", H.obj_text(_with([0, -np.inf, 0]), [[0, 1, 2], [0, 1, 3]])),
-    ("obj-overflow", H.obj_text(TETRA, [[0, 1, 2]]).replace(b"v 0.0 1.0 0.0", b"v 0.0 1e999 0.0")),
-    ("stl-nan", H.binary_stl(_with([0, np.nan, 0])[[0, 1, 2, 0, 1, 3]])),
+    ("ply-binary-nan", F.ply_binary(_with([0, np.nan, 0]), [[0, 1, 2], [0, 1, 3]])),
+    ("ply-binary-inf", F.ply_binary(_with([0, np.inf, 0]), [[0, 1, 2], [0, 1, 3]])),
+    ("ply-ascii-nan", F.ply_ascii(_with([0, np.nan, 0]), [[0, 1, 2], [0, 1, 3]])),
+    ("obj-inf", F.obj_text(_with([0, -np.inf, 0]), [[0, 1, 2], [0, 1, 3]])),
+    ("obj-overflow", F.obj_text(TETRA, [[0, 1, 2]]).replace(b"v 0.0 1.0 0.0", b"v 0.0 1e999 0.0")),
+    ("stl-nan", F.binary_stl(_with([0, np.nan, 0])[[0, 1, 2, 0, 1, 3]])),
     ("off-inf", b"OFF\n4 2 0\n0 0 0\n1 0 0\n0 inf 0\n0 0 1\n3 0 1 2\n3 0 1 3\n"),
 ], ids=lambda x: x if isinstance(x, str) else "")
 def test_nan_and_inf_coordinates(client, name, data):
@@ -243,7 +244,7 @@ def test_nan_and_inf_coordinates(client, name, data):
 def test_glb_nan_position(client):
     v, f = H.icosphere(1)
     v[3] = np.nan
-    refused(post(client, "m.glb", H.glb(*H.gltf_document(v, f))), 422, "malformed-mesh")
+    refused(post(client, "m.glb", F.to_glb(*F.gltf_document(v, f))), 422, "malformed-mesh")
 
 
 # ------------------------------------------------------------------------------------- OBJ, STL, others
@@ -253,7 +254,7 @@ def test_obj_mtllib_pointing_outside_is_kept_verbatim_and_never_opened(client, c
     head = "\n".join([f"mtllib {mtl}", "mtllib ../canary.mtl", "mtllib ../../../../../../etc/passwd",
                       f"mtllib file://{mtl}", f"mtllib http://127.0.0.1:{canaries['port']}/canary.mtl",
                       f"mtllib {canaries['dir'] / 'canary.fifo'}", "usemtl red"])
-    data = H.obj_text(*H.icosphere(4), head=head)
+    data = F.obj_text(*H.icosphere(4), head=head)
     response = post(client, "ball.obj", data)
     assert response.status_code == 200, response.text[:500]
     out_lines = response.content.split(b"\n")
@@ -267,9 +268,9 @@ def test_stl_whose_facet_count_disagrees_with_its_size(client):
     v, f = H.icosphere(2)
     tris = v[f]
     for count in (len(f) + 1, len(f) - 1, 2**32 - 1, 0):
-        body = refused(post(client, "m.stl", H.binary_stl(tris, count=count)), 415, "unsupported-format")
+        body = refused(post(client, "m.stl", F.binary_stl(tris, count=count)), 415, "unsupported-format")
         assert "binary STL" in body["detail"] and f"{count:,} facets" in body["detail"]
-    tail = H.binary_stl(tris) + b"\0" * 7  # the right count, then junk
+    tail = F.binary_stl(tris) + b"\0" * 7  # the right count, then junk
     refused(post(client, "m.stl", tail), 415, "unsupported-format")
 
 
@@ -311,14 +312,14 @@ def _soup(subdivisions: int = 3) -> tuple[np.ndarray, np.ndarray]:
 
 
 CANNOT_CARRY = [
-    ("triangle.obj", H.obj_text(TETRA[:3], [[0, 1, 2]]), "degenerate-mesh", "fewer than 4"),
-    ("cloud.ply", H.ply_binary(np.random.default_rng(1).random((500, 3)), []), "degenerate-mesh",
+    ("triangle.obj", F.obj_text(TETRA[:3], [[0, 1, 2]]), "degenerate-mesh", "fewer than 4"),
+    ("cloud.ply", F.ply_binary(np.random.default_rng(1).random((500, 3)), []), "degenerate-mesh",
      "point cloud"),
-    ("collinear.obj", H.obj_text(np.stack([np.arange(50.0), np.zeros(50), np.zeros(50)], axis=1),
+    ("collinear.obj", F.obj_text(np.stack([np.arange(50.0), np.zeros(50), np.zeros(50)], axis=1),
                                  [[i, i + 1, i + 2] for i in range(48)]), "degenerate-mesh", "zero area"),
-    ("repeated.ply", H.ply_ascii(TETRA, [[0, 0, 1], [2, 3, 3], [1, 1, 1]]), "degenerate-mesh",
+    ("repeated.ply", F.ply_ascii(TETRA, [[0, 0, 1], [2, 3, 3], [1, 1, 1]]), "degenerate-mesh",
      "repeats a vertex"),
-    ("soup.obj", H.obj_text(*_soup()), "too-little-capacity", "triangle soup"),
+    ("soup.obj", F.obj_text(*_soup()), "too-little-capacity", "triangle soup"),
 ]
 
 

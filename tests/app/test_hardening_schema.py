@@ -41,10 +41,11 @@ def test_api_conforms_to_its_document(case: Any) -> None:
 def _ball(ext: str) -> bytes:
     import trimesh
 
-    from tests.app.hostile import gltf_document, gltf_text, icosphere
+    from tests.app.hostile import icosphere
+    from tests.core.formats.helpers import gltf_document, to_gltf
 
     if ext == "gltf":
-        return gltf_text(*gltf_document(*icosphere(4)))
+        return to_gltf(*gltf_document(*icosphere(4)))
     data = trimesh.creation.icosphere(subdivisions=4).export(file_type=ext)
     return data.encode() if isinstance(data, str) else data
 

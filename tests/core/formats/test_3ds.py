@@ -15,36 +15,9 @@ from hypothesis import strategies as st
 from core.errors import DegenerateMeshError, LimitExceededError, MeshFormatError, MeshMarkError
 from core.formats import DEFAULT_LIMITS, FORMATS, Limits, tds
 from tests.conftest import MESHES_DIR, shared_mesh_path
+from tests.core.formats.helpers import chunk, make_3ds, trimesh_chunk
 
 FUZZ_EXAMPLES = int(os.environ.get("MESHMARK_FUZZ_EXAMPLES", "100"))
-
-
-def chunk(cid: int, body: bytes) -> bytes:
-    return struct.pack("<HI", cid, 6 + len(body)) + body
-
-
-def trimesh_chunk(vertices: np.ndarray, faces: np.ndarray) -> bytes:
-    n, m = len(vertices), len(faces)
-    vl = chunk(tds.VERTICES, struct.pack("<H", n) + np.asarray(vertices, "<f4").tobytes())
-    uv = chunk(tds.TEXCOORDS, struct.pack("<H", n) + np.zeros((n, 2), "<f4").tobytes())
-    matrix = chunk(tds.MATRIX, np.eye(4, 3, dtype="<f4").tobytes())
-    rec = np.zeros((m, 4), "<u2")
-    rec[:, :3] = faces
-    rec[:, 3] = 7
-    groups = chunk(0x4130, b"steel\0" + struct.pack("<H", m) + np.arange(m, dtype="<u2").tobytes())
-    smooth = chunk(0x4150, np.ones(m, "<u4").tobytes())
-    fl = chunk(tds.FACES, struct.pack("<H", m) + rec.tobytes() + groups + smooth)
-    return chunk(tds.TRIMESH, vl + uv + matrix + fl)
-
-
-def make_3ds(objects: list[tuple[str, bytes]]) -> bytes:
-    """A 3DS file with the given (name, object body chunks) objects."""
-    editor = chunk(0x3D3E, struct.pack("<I", 3)) + b"".join(
-        chunk(tds.OBJECT, name.encode() + b"\0" + body) for name, body in objects
-    )
-    return chunk(tds.MAIN, chunk(tds.VERSION, struct.pack("<I", 3)) + chunk(tds.EDITOR, editor)
-                 + chunk(tds.KEYFRAMER, chunk(0xB00A, b"\0" * 8)))
-
 
 CUBE_V = np.array(
     [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], dtype="<f4"

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import base64
-import copy
 import json
 import os
 import re
@@ -20,6 +19,7 @@ from hypothesis import strategies as st
 from core.errors import DegenerateMeshError, LimitExceededError, MeshFormatError, MeshMarkError
 from core.formats import DEFAULT_LIMITS, Limits, gltf
 from tests.conftest import MESHES_DIR, shared_mesh_path
+from tests.core.formats.helpers import data_uri, to_glb, to_gltf
 
 # ---------------------------------------------------------------------------- builders
 
@@ -52,28 +52,6 @@ def octahedron(**prim: Any) -> tuple[dict[str, Any], bytes]:
         "buffers": [{"byteLength": len(pos) + len(idx)}],
     }
     return doc, pos + idx
-
-
-def to_glb(doc: dict[str, Any], blob: bytes | None) -> bytes:
-    """GLB container for a JSON dict and an optional BIN chunk."""
-    text = json.dumps(doc, separators=(",", ":")).encode()
-    text += b" " * (-len(text) % 4)
-    out = struct.pack("<II", len(text), gltf.CHUNK_JSON) + text
-    if blob is not None:
-        blob += b"\0" * (-len(blob) % 4)
-        out += struct.pack("<II", len(blob), gltf.CHUNK_BIN) + blob
-    return b"glTF" + struct.pack("<II", 2, 12 + len(out)) + out
-
-
-def data_uri(blob: bytes) -> str:
-    return "data:application/octet-stream;base64," + base64.b64encode(blob).decode()
-
-
-def to_gltf(doc: dict[str, Any], blob: bytes, indent: int | None = 2) -> bytes:
-    """.gltf JSON text with ``blob`` embedded as buffer 0."""
-    doc = copy.deepcopy(doc)
-    doc["buffers"][0]["uri"] = data_uri(blob)
-    return json.dumps(doc, indent=indent).encode()
 
 
 def glb_parts(data: bytes) -> tuple[bytes, bytes, int, int]:

@@ -13,10 +13,10 @@ from core.errors import LimitExceededError, MeshFormatError, MeshMarkError, Unsu
 from core.formats import FORMATS, Limits, detect_format, obj, off, ply, read_mesh, stl
 from core.formats._text import format_coord, round_like_text
 from tests.conftest import shared_mesh_path
+from tests.core.formats.helpers import binary_stl
 from tests.core.formats.text_helpers import (
     allowed_binary_bytes,
     assert_text_diff,
-    binary_stl,
     coord_tokens,
     move_some,
     moved_slot_mask,

@@ -10,8 +10,8 @@ from hypothesis import strategies as st
 from core.errors import MeshMarkError
 from core.formats import read_mesh
 from tests.conftest import MESHES_DIR
+from tests.core.formats.helpers import OCTAHEDRON, WRITERS, binary_stl
 from tests.core.formats.test_text_formats import OBJ_CRLF, STL_ASCII, _ply_ascii, _ply_binary
-from tests.core.formats.text_helpers import binary_stl
 from tests.mutations import OPS, TOKENS, Op, apply_ops
 
 SMALL = [
@@ -31,7 +31,10 @@ REAL = [
     for n in ("teapot.stl", "spot.obj", "fandisk.off", "horse.ply")
     if (MESHES_DIR / n).is_file()
 ]
-SEEDS = SMALL + REAL
+# the named tiny meshes in every encoding of these formats
+TINY_FILES = [(f"{OCTAHEDRON.name}.{fmt}", write(OCTAHEDRON)) for (fmt, _), write in WRITERS.items()
+              if fmt in ("obj", "ply", "stl", "off")]
+SEEDS = SMALL + TINY_FILES + REAL
 
 mutation = st.tuples(
     st.sampled_from(OPS),

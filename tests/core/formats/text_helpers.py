@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import re
-import struct
 
 import numpy as np
 
@@ -111,11 +110,3 @@ def move_some(doc: MeshDocument, fraction: float = 0.01, seed: int = 0) -> tuple
 
 def reread(data: bytes, name: str) -> MeshDocument:
     return read_mesh(data, filename=name)
-
-
-def binary_stl(triangles: np.ndarray, header: bytes = b"binary", attr: int = 0) -> bytes:
-    """A binary STL with the given (n, 3, 3) corners and zero normals."""
-    out = [header.ljust(80, b" ")[:80], struct.pack("<I", len(triangles))]
-    for t in np.asarray(triangles, np.float32):
-        out.append(struct.pack("<3f", 0, 0, 1) + t.astype("<f4").tobytes() + struct.pack("<H", attr))
-    return b"".join(out)
