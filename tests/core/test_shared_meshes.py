@@ -9,7 +9,7 @@ from core.api import capacity_file, detect_file, detect_mesh, embed_file
 from core.coding import key_code
 from core.formats import read_mesh
 from tests.conftest import SHARED_MESHES, shared_mesh_path
-from tests.core.test_engine import similarity
+from tests.core.meshes import similarity
 
 METHODS = ["ellipsoids", "planes"]
 PAYLOAD64 = "1100101011110000101001011100001111001010111100001010010111000011"

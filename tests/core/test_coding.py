@@ -1,0 +1,62 @@
+"""core.coding: Hamming(7,4), CRC-32 framing, keyed whitening, soft decoding, tail probabilities."""
+
+from __future__ import annotations
+
+import zlib
+from itertools import product
+
+import numpy as np
+import pytest
+
+from core import coding
+from core.coding import KEY_CODE_BITS
+
+
+def test_hamming_codeword_is_data_then_parity() -> None:
+    assert coding.hamming_encode(np.array([1, 0, 1, 1])).tolist() == [1, 0, 1, 1, 0, 1, 0]
+    assert coding.hamming_encode(np.array([1])).tolist() == [1, 0, 0, 0, 1, 1, 0]  # zero-padded nibble
+
+
+def test_every_single_error_of_every_codeword_is_corrected() -> None:
+    for nibble in product([0, 1], repeat=4):
+        word = coding.hamming_encode(np.array(nibble))
+        for flipped in range(7):
+            received = word.copy()
+            received[flipped] ^= 1
+            llr = 1.0 - 2.0 * received  # hard votes: +1 reads 0
+            assert coding.ml_bits(llr).tolist() == list(nibble)
+
+
+def test_lengths_of_the_frames() -> None:
+    assert coding.codeword_length(None) == 7 * KEY_CODE_BITS // 4 == 56
+    assert [coding.codeword_length(n) for n in (1, 4, 5, 256)] == [63, 63, 70, 504]
+
+
+def test_crc_covers_the_length_and_the_bits() -> None:
+    bits = np.array([1, 0, 1], np.uint8)
+    expected = zlib.crc32(bytes([2, 0b10100000]))
+    assert int(coding.bits_to_str(coding.crc_bits(bits)), 2) == expected
+    assert not np.array_equal(coding.crc_bits(bits), coding.crc_bits(np.array([1, 0, 1, 0], np.uint8)))
+
+
+def test_whitened_codeword_decodes_to_the_key_code() -> None:
+    word = coding.encode("key", None)
+    plain = word ^ coding.whitening("key", len(word))
+    assert coding.ml_bits(1.0 - 2.0 * plain)[:KEY_CODE_BITS].tolist() == coding.key_code("key").tolist()
+    assert not np.array_equal(coding.whitening("key", 56), coding.whitening("other", 56))
+    assert not coding.whitening("key", 56).flags.writeable
+    code = coding.key_code("k")
+    assert coding.bits_to_str(code) == coding.bits_to_str(coding.key_code(b"k")) and len(code) == 32
+
+
+def test_soft_decoding_reports_how_sure_it_is() -> None:
+    sure = coding.soft_decode(np.full(7, 5.0))
+    assert sure.bits.tolist() == [0, 0, 0, 0] and (sure.confidence > 0.999).all()
+    unsure = coding.soft_decode(np.zeros(7))
+    assert np.allclose(unsure.confidence, 0.5)
+
+
+def test_tail_probabilities_and_log_odds() -> None:
+    assert [coding.binomial_tail(k, 2) for k in (0, 1, 2)] == [0.25, 0.75, 1.0]
+    assert coding.binomial_tail(1, 32) == pytest.approx(33 / 2**32)
+    assert coding.log_odds(0.5) == 0.0 and coding.log_odds(0.0) == coding.log_odds(1e-6) > 0

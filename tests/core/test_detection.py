@@ -1,0 +1,79 @@
+"""core.detection on synthetic carriers (no mesh): decoding, the carrier error-rate estimate, the
+acceptance tests and the false-positive figure."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.analysis import Analysis
+from core.coding import encode, key_code
+from core.detection import _posterior, adaptive_threshold, detect_analyses
+from core.slots import assign_slots
+
+KEY = "detection key"
+
+
+def carriers_reading(word: np.ndarray, k: int, seed: int, flip: float = 0.0) -> Analysis:
+    """``k`` carriers whose statistics read ``word`` (whitened), a fraction ``flip`` of them wrong."""
+    rng = np.random.default_rng(seed)
+    hashes = rng.integers(0, 2**63, k, dtype=np.uint64)
+    slots = assign_slots([hashes], len(word))[0]
+    z = np.where(word[slots] == 0, 1.0, -1.0) * rng.uniform(0.05, 0.2, k)
+    z[rng.random(k) < flip] *= -1
+    empty = np.zeros((k, 3))
+    return Analysis(np.arange(k), hashes, z, empty, np.zeros((k, 3, 3)), empty, np.ones(k), False)
+
+
+def test_an_explicit_payload_is_found_with_its_length() -> None:
+    payload = np.array([1, 0, 1, 1, 0, 0, 1, 0, 1, 1], np.uint8)
+    result = detect_analyses({"planes": [carriers_reading(encode(KEY, payload), 600, 1)]}, KEY)
+    assert result.detected and result.crc_ok and result.payload == "1011001011"
+    assert result.method == "planes" and not result.key_derived and len(result.bit_confidence) == 10
+    assert result.false_positive_probability < 1e-6
+
+
+def test_the_key_derived_code_and_the_expected_payload() -> None:
+    found = detect_analyses({"ellipsoids": [carriers_reading(encode(KEY, None), 300, 2)]}, KEY)
+    assert found.detected and found.key_derived and found.bit_errors == 0
+    assert found.payload == "".join(map(str, key_code(KEY)))
+    payload = np.ones(16, np.uint8)
+    checked = detect_analyses({"planes": [carriers_reading(encode(KEY, payload), 600, 3)]}, KEY, payload)
+    assert checked.detected and checked.bit_errors == 0 and checked.p_value == 2.0**-16
+
+
+def test_the_code_absorbs_wrong_carriers() -> None:
+    payload = np.array([0, 1] * 16, np.uint8)
+    noisy = carriers_reading(encode(KEY, payload), 1200, 4, flip=0.15)
+    assert detect_analyses({"planes": [noisy]}, KEY).payload == bits(payload)
+
+
+def test_a_wrong_key_reads_nothing() -> None:
+    analyses = [carriers_reading(encode(KEY, np.ones(8, np.uint8)), 600, 5)]
+    result = detect_analyses({"planes": analyses}, "another key")
+    assert not result.detected and result.payload is None and result.false_positive_probability == 1.0
+
+
+@pytest.mark.parametrize("flip", [0.05, 0.2, 0.35])
+def test_the_carrier_error_rate_comes_from_agreement_within_slots(flip: float) -> None:
+    """Votes of one slot agree as often as the error rate allows; the estimate does not depend on
+    which codeword is decoded."""
+    rng = np.random.default_rng(6)
+    length, k = 56, 5600
+    slots = rng.integers(0, length, k)
+    truth = 1.0 - 2.0 * rng.integers(0, 2, length)
+    raw = truth[slots] * np.where(rng.random(k) < flip, -1.0, 1.0)
+    sign = np.ones(length)
+    sums = np.bincount(slots, raw, minlength=length)
+    _, p = _posterior(slots, raw, sign, sums, np.zeros(32, np.uint8))
+    assert p == pytest.approx(flip, abs=0.03)
+
+
+def test_adaptive_threshold_splits_two_shifted_classes() -> None:
+    z = np.r_[np.full(20, -1.0), np.full(20, 3.0)]
+    assert adaptive_threshold(z) == 1.0
+    assert adaptive_threshold(np.array([5.0, 6.0])) == 0.0  # too few to split
+
+
+def bits(values: np.ndarray) -> str:
+    return "".join(map(str, values.tolist()))

@@ -1,0 +1,62 @@
+"""core.embedding: the closest point on an ellipsoid, the target of a move, and the embedding of
+a codeword as the detector then reads it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.analysis import analyse, statistic
+from core.coding import encode
+from core.embedding import closest_on_ellipsoid, embed_parts, target_positions
+from core.slots import assign_slots
+from tests.core.meshes import irregular_sphere
+
+
+def test_closest_point_on_a_sphere_is_radial() -> None:
+    got = closest_on_ellipsoid(np.array([[3.0, 4.0, 0.0]]), np.array([[2.0, 2.0, 2.0]]))
+    assert got == pytest.approx(np.array([[1.2, 1.6, 0.0]]))
+
+
+def test_closest_point_on_an_ellipsoid() -> None:
+    axes = np.array([[2.0, 1.0, 1.0]] * 3)
+    points = np.array([[5.0, 0.0, 0.0], [0.0, 0.0, 3.0], [2.0, 2.0, 0.0]])
+    got = closest_on_ellipsoid(points, axes)
+    assert got[:2] == pytest.approx(np.array([[2.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))
+    x, y, _ = got[2]
+    assert x**2 / 4 + y**2 == pytest.approx(1.0)  # on the ellipsoid
+    normal = np.array([x / 4, y, 0.0])  # gradient there, parallel to (point - x) at the closest point
+    assert np.cross(normal, points[2] - got[2]) == pytest.approx(np.zeros(3), abs=1e-9)
+    collapsed = closest_on_ellipsoid(np.array([[1.0, 1.0, 1.0]]), np.zeros((1, 3)))
+    assert collapsed == pytest.approx(np.zeros((1, 3)))
+
+
+@pytest.mark.parametrize("method", ["planes", "ellipsoids"])
+def test_targets_land_at_the_margin_on_the_wanted_side(method: str) -> None:
+    v, f = irregular_sphere(1500, 7)
+    a = analyse(v, f, "key", method)
+    margin = 0.07
+    bits = np.where(a.z > 0, 0, 1).astype(np.uint8)  # what each carrier reads now...
+    bits[::2] ^= 1  # ...and the opposite for every other one
+    new = target_positions(method, a, v[a.carriers], bits, margin)
+    z = statistic(method, new, a.mu, a.axes, a.lam, a.scale)
+    want = np.where(bits == 0, 1.0, -1.0)
+    moved = np.any(new != v[a.carriers], axis=1)
+    assert np.array_equal(moved, want * a.z < margin) and moved[::2].all()
+    assert want[moved] * z[moved] == pytest.approx(np.full(moved.sum(), margin), abs=1e-6)
+    # on the right side with the margin asked for: left alone
+    assert np.array_equal(target_positions(method, a, new, bits, 0.5 * margin), new)
+
+
+def test_embedded_carriers_read_the_codeword() -> None:
+    v, f = irregular_sphere(2000, 8)
+    original = v.copy()
+    word = encode("key", np.array([1, 0, 1, 1, 0, 1], np.uint8))
+    (new,), (stats,), (view,) = embed_parts([(v, f)], "key", word, "planes", 0.07)
+    assert np.array_equal(v, original)  # the input is not modified
+    slots = assign_slots([view.slot_hash], len(word))[0]
+    reads = (view.z < 0).astype(np.uint8)
+    assert np.array_equal(reads, word[slots])
+    fresh = analyse(new, f, "key", "planes")  # the detector's own view agrees with the embedder's
+    assert np.array_equal(fresh.carriers, view.carriers) and np.allclose(fresh.z, view.z)
+    assert stats.carriers == len(view.carriers) and stats.moved == int(np.any(new != v, axis=1).sum())

@@ -1,0 +1,56 @@
+"""core.mesh on tiny meshes with known answers: adjacency, boundary and non-manifold flags,
+neighbour-only moments, bounding box."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from core.mesh import adjacency, bbox_diagonal, edge_lengths, neighbour_moments
+from tests.core.formats.helpers import SQUARE, TETRAHEDRON
+
+
+def test_tetrahedron_every_vertex_sees_the_three_others() -> None:
+    adj = adjacency(TETRAHEDRON.faces, 4)
+    assert adj.degree.tolist() == [3, 3, 3, 3]
+    assert [sorted(adj.indices[adj.indptr[i]:adj.indptr[i + 1]].tolist()) for i in range(4)] == [
+        [1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]
+    assert not adj.boundary.any() and not adj.nonmanifold.any()
+
+
+def test_square_is_all_boundary_with_one_interior_edge() -> None:
+    adj = adjacency(SQUARE.faces, 4)  # triangles (0 1 2), (0 2 3): the diagonal 0-2 is shared
+    assert adj.degree.tolist() == [3, 2, 3, 2]
+    assert adj.boundary.all() and not adj.nonmanifold.any()
+    assert adj.rows.tolist() == [0, 0, 0, 1, 1, 2, 2, 2, 3, 3]
+
+
+def test_an_edge_of_three_faces_is_non_manifold() -> None:
+    faces = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])
+    adj = adjacency(faces, 6)  # vertex 5 is isolated
+    assert adj.nonmanifold.tolist() == [True, True, False, False, False, False]
+    assert adj.degree[5] == 0
+
+
+def test_ring_entries_and_sums() -> None:
+    adj = adjacency(SQUARE.faces, 4)
+    first, pos = adj.ring_entries(np.array([1, 3]))
+    assert first.tolist() == [0, 2] and adj.indices[pos].tolist() == [0, 2, 0, 2]
+    assert adj.ring_sum_u64(np.array([1, 10, 100, 1000], np.uint64)).tolist() == [1110, 101, 1011, 101]
+
+
+def test_moments_of_a_regular_hexagon_ring() -> None:
+    """Centre vertex 0 lifted off the plane of a hexagon of radius 2: the moments ignore it, the
+    mean is the hexagon's centre and the covariance diag(r^2/2, r^2/2, 0)."""
+    angles = np.arange(6) * np.pi / 3
+    ring = np.stack([2 * np.cos(angles), 2 * np.sin(angles), np.zeros(6)], axis=1) + [5.0, -1.0, 3.0]
+    vertices = np.vstack([[5.0, -1.0, 7.0], ring])
+    faces = np.array([[0, 1 + k, 1 + (k + 1) % 6] for k in range(6)])
+    mu, sigma = neighbour_moments(vertices, adjacency(faces, 7), np.array([0]))
+    assert np.allclose(mu, [[5.0, -1.0, 3.0]])
+    assert np.allclose(sigma[0], np.diag([2.0, 2.0, 0.0]))
+
+
+def test_lengths_and_diagonal() -> None:
+    adj = adjacency(SQUARE.faces, 4)
+    assert sorted(np.round(edge_lengths(SQUARE.vertices, adj), 6).tolist()) == [1, 1, 1, 1, round(2**0.5, 6)]
+    assert bbox_diagonal(TETRAHEDRON.vertices) == 3**0.5 and bbox_diagonal(np.zeros((0, 3))) == 0.0

@@ -1,0 +1,74 @@
+"""core.sync: connectivity labels and the keyed maximal independent set of carriers."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from core.mesh import adjacency
+from core.sync import MAX_DEGREE, is_regular, select_carriers, vertex_labels, wl_colours
+from tests.core.formats.helpers import OCTAHEDRON, TETRAHEDRON
+from tests.core.meshes import irregular_sphere
+
+
+def test_highest_priority_wins_then_the_next_independent_one() -> None:
+    """Octahedron: vertex 5 has the highest priority; the only vertex not next to it is its
+    opposite, 4, which joins in the next round although its priority is low."""
+    adj = adjacency(OCTAHEDRON.faces, 6)
+    chosen = select_carriers(adj, np.array([5, 1, 2, 3, 4, 6], np.uint64), np.ones(6, bool))
+    assert chosen.tolist() == [4, 5]
+
+
+def test_equal_priorities_never_win_against_each_other() -> None:
+    adj = adjacency(TETRAHEDRON.faces, 4)
+    assert select_carriers(adj, np.full(4, 9, np.uint64), np.ones(4, bool)).size == 0
+    # an unusable vertex neither carries nor blocks its neighbours
+    usable = np.array([True, True, True, False])
+    assert select_carriers(adj, np.array([1, 2, 3, 99], np.uint64), usable).tolist() == [2]
+
+
+def test_carriers_form_a_maximal_independent_set() -> None:
+    v, f = irregular_sphere(800, 3)
+    adj = adjacency(f, len(v))
+    priority = np.random.default_rng(0).permutation(len(v)).astype(np.uint64) + np.uint64(1)  # distinct
+    chosen = select_carriers(adj, priority, np.ones(len(v), bool))
+    taken = np.zeros(len(v), bool)
+    taken[chosen] = True
+    neighbours_taken = np.bincount(adj.rows, taken[adj.indices], minlength=len(v))
+    assert not (taken & (neighbours_taken > 0)).any()  # independent
+    assert (taken | (neighbours_taken > 0)).all()  # maximal: every other vertex touches a carrier
+
+
+def test_labels_ignore_numbering_and_geometry() -> None:
+    v, f = irregular_sphere(500, 1)
+    adj = adjacency(f, len(v))
+    colours = wl_colours(adj, 3)
+    perm = np.random.default_rng(1).permutation(len(v))
+    inverse = np.argsort(perm)
+    moved = adjacency(inverse[f], len(v))  # vertex i is now vertex inverse[i]
+    assert np.array_equal(wl_colours(moved, 3)[inverse], colours)
+    labels = vertex_labels(v, adj)
+    assert not labels.regular and np.array_equal(labels.labels, colours)
+    assert np.array_equal(vertex_labels(v * 3 + 1, adj).labels, labels.labels)
+
+
+def test_usable_vertices_by_valence() -> None:
+    adj = adjacency(TETRAHEDRON.faces, 4)  # valence 3, closed: below the minimum of 4
+    assert not vertex_labels(TETRAHEDRON.vertices, adj).usable.any()
+    adj = adjacency(OCTAHEDRON.faces, 6)
+    assert vertex_labels(OCTAHEDRON.vertices, adj).usable.all()
+    assert MAX_DEGREE == 12
+
+
+def test_subdivided_meshes_are_regular_and_use_the_geometric_fallback() -> None:
+    """An icosphere has 2 connectivity classes (valence 5 and 6) however many rings are used; its
+    labels then depend on position, and are kept for vertices whose neighbours did not move."""
+    m = trimesh.creation.icosphere(subdivisions=3)
+    v = np.asarray(m.vertices)
+    adj = adjacency(m.faces, len(v))
+    labels = vertex_labels(v, adj)
+    assert labels.regular and np.unique(labels.connectivity).size < 0.1 * len(v)
+    assert np.unique(labels.labels).size > 0.5 * len(v)
+    assert is_regular(labels.connectivity, labels.usable)
+    again = vertex_labels(v, adj, labels)  # same geometry: the same labels
+    assert np.array_equal(again.labels, labels.labels)
