@@ -7,6 +7,7 @@ exactly as a user of the CLI or the service would, and feed it *files* (bytes).
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import io
 import json
@@ -265,10 +266,8 @@ def cpu_model() -> str:
 
 def environment() -> dict[str, Any]:
     mem = None
-    try:
+    with contextlib.suppress(ValueError, OSError, AttributeError):
         mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
-    except (ValueError, OSError, AttributeError):
-        pass
     return {
         "date": _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC"),
         "platform": platform.platform(),

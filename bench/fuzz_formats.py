@@ -303,7 +303,7 @@ def _3ds_header(data: bytes, rng: np.random.Generator) -> tuple[bytes, str]:
     chunks = _3ds_chunks(data, 0, len(data))
     if not chunks:
         return m_flip(data, rng, "3ds")
-    at, cid, length = chunks[int(rng.integers(len(chunks)))]
+    at, cid, _ = chunks[int(rng.integers(len(chunks)))]
     r = rng.random()
     if r < 0.5:
         return _u32(data, rng, at + 2, f"chunk 0x{cid:04X} length")
@@ -312,7 +312,7 @@ def _3ds_header(data: bytes, rng: np.random.Generator) -> tuple[bytes, str]:
         new = int(rng.choice(ids))
         return data[:at] + struct.pack("<H", new) + data[at + 2 :], f"chunk 0x{cid:04X} id -> 0x{new:04X}"
     count_chunks = [c for c in chunks if c[1] in (0x4110, 0x4120, 0x4140)] or chunks
-    at, cid, length = count_chunks[int(rng.integers(len(count_chunks)))]
+    at, cid, _length = count_chunks[int(rng.integers(len(count_chunks)))]
     if at + 8 > len(data):
         return m_flip(data, rng, "3ds")
     old = struct.unpack_from("<H", data, at + 6)[0]
@@ -424,7 +424,7 @@ def run_case(name: str, data: bytes) -> dict[str, Any]:
         if out["stage"] != "read":
             out["outcome"] = f"finding:{type(e).__name__}-at-{out['stage']}"
             out["message"] = str(e)[:300]
-    except BaseException as e:  # noqa: BLE001 - this is what the fuzz run looks for
+    except BaseException as e:  # this is what the fuzz run looks for
         out["outcome"] = f"finding:{type(e).__name__}"
         out["message"] = str(e)[:300]
         out["traceback"] = traceback.format_exc()[-2000:]
@@ -436,11 +436,11 @@ def worker(seed: int, address_space: int) -> None:
     """Line protocol on stdin/stdout: a case number in, one JSON line out."""
     if address_space > 0:
         resource.setrlimit(resource.RLIMIT_AS, (address_space, address_space))
-    import core.formats.gltf  # noqa: F401  (imports outside the per-case timing)
-    import core.formats.obj  # noqa: F401
-    import core.formats.off  # noqa: F401
-    import core.formats.ply  # noqa: F401
-    import core.formats.stl  # noqa: F401
+    import core.formats.gltf  # imports outside the per-case timing
+    import core.formats.obj
+    import core.formats.off
+    import core.formats.ply
+    import core.formats.stl
     import core.formats.tds  # noqa: F401
 
     files = mesh_files()

@@ -594,7 +594,9 @@ def plot_fig21(result: dict[str, Any], out_dir: Path) -> str | None:
             if not c or all(np.isnan(c["mean"])):
                 continue
             kw = (
-                dict(color="black", linewidth=2.2, capsize=3) if who == "all" else dict(alpha=0.75, capsize=2)
+                {"color": "black", "linewidth": 2.2, "capsize": 3}
+                if who == "all"
+                else {"alpha": 0.75, "capsize": 2}
             )
             ax.errorbar(
                 c["E"],

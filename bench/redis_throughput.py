@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import itertools
 import os
 import shutil
 import signal
@@ -101,7 +102,7 @@ async def _idle_gaps(runner: Any, ids: list[str]) -> list[float]:
     gaps = []
     for runs in by_worker.values():
         runs.sort()
-        gaps += [b[0] - a[1] for a, b in zip(runs, runs[1:], strict=False)]
+        gaps += [b[0] - a[1] for a, b in itertools.pairwise(runs)]
     return gaps
 
 

@@ -516,7 +516,7 @@ def plot(result: dict[str, Any], out_dir: Path) -> list[str]:
                 for r in sel:
                     per[r["mesh"]].append(r["recovered"])
                 ys.append(100 * np.mean([np.mean(v) for v in per.values()]) if per else np.nan)
-            style = dict(color="tab:blue" if meth == "ellipsoids" else "tab:orange")
+            style = {"color": "tab:blue" if meth == "ellipsoids" else "tab:orange"}
             lab = f"{meth} ({sl} strength)"
             if numeric:
                 xs = [100 * lv if spec.name in ("uniform_noise", "crop", "simplify") else lv for lv in levels]

@@ -177,7 +177,7 @@ def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
     carriers0 = int(sum(len(a.carriers) for a in analyses0))
     return DetectResult(detected=False, payload=None, bit_confidence=[], false_positive_probability=1.0,
                         copies=0.0, carriers=carriers0, crc_ok=False, method=method0, key_derived=False,
-                        parts=[{"carriers": int(len(a.carriers))} for a in analyses0])
+                        parts=[{"carriers": len(a.carriers)} for a in analyses0])
 
 
 class _MethodDecoder:
@@ -192,7 +192,7 @@ class _MethodDecoder:
         for n in lengths:
             self.by_L.setdefault(codeword_length(n), []).append(n)
         self.carriers = int(sum(len(a.carriers) for a in analyses))
-        self.parts = [{"carriers": int(len(a.carriers)), "regular_fallback": bool(a.regular)}
+        self.parts = [{"carriers": len(a.carriers), "regular_fallback": bool(a.regular)}
                       for a in analyses]
         #: with an expected payload, the closest candidate so far
         self.near: DetectResult | None = None

@@ -34,7 +34,8 @@ def _scaled(a: Vec, s: np.ndarray) -> Vec:
 class _Sym:
     """The six entries of a stack of symmetric matrices, as contiguous arrays."""
 
-    def __init__(self, a00, a01, a02, a11, a12, a22):
+    def __init__(self, a00: np.ndarray, a01: np.ndarray, a02: np.ndarray, a11: np.ndarray, a12: np.ndarray,
+                 a22: np.ndarray) -> None:
         self.a00, self.a01, self.a02, self.a11, self.a12, self.a22 = a00, a01, a02, a11, a12, a22
 
     def rows(self, lam: np.ndarray) -> tuple[Vec, Vec, Vec]:

@@ -271,7 +271,7 @@ def _embed_doc(doc: MeshDocument, options: Options,
     moved, rms, mx, haus = _distortion(doc, new, {i: prepared[k][0] for k, i in enumerate(parts)})
     part_info = []
     for k, i in enumerate(parts):
-        part_info.append({"name": doc.parts[i].name, "vertices": int(len(doc.parts[i].vertices)),
+        part_info.append({"name": doc.parts[i].name, "vertices": len(doc.parts[i].vertices),
                           "carriers": stats[k].carriers, "skipped": stats[k].skipped,
                           "moved": stats[k].moved})
     rep = EmbedReport(method=method, strength=s, payload_bits=KEY_CODE_BITS if bits is None else len(bits),
@@ -343,7 +343,7 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
     for k, i in enumerate(parts):
         new[i] = vs[k]
         carriers += stats[k].carriers
-        info.append({"name": doc.parts[i].name, "vertices": int(len(doc.parts[i].vertices)),
+        info.append({"name": doc.parts[i].name, "vertices": len(doc.parts[i].vertices),
                      "carriers": stats[k].carriers})
     max_bits = _largest_payload(carriers / CAPACITY_MARGIN)
     by_copies = {str(c): _largest_payload(carriers / c) for c in (1, 2, 4, 8, 16)}

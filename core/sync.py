@@ -96,10 +96,7 @@ def frame_cells(points: np.ndarray, vertices: np.ndarray, cell: float) -> np.nda
     gaps = np.diff(w) / max(w[-1], 1e-300)
     if np.all(gaps > 0.1):
         skew = ((x @ e) ** 3).mean(axis=0)
-        if np.all(np.abs(skew) > 1e-3 * r**3):
-            e = e * np.sign(skew)
-        else:
-            e = np.eye(3)
+        e = e * np.sign(skew) if np.all(np.abs(skew) > 1e-3 * r**3) else np.eye(3)
     else:
         e = np.eye(3)
     q = np.floor(((points - c) @ e) / (r * cell) + GRID_OFFSET).astype(np.int64)

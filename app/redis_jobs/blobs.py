@@ -14,6 +14,7 @@ The methods are synchronous (file and S3 clients are); async callers run them in
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import tempfile
@@ -68,10 +69,8 @@ class LocalBlobStore:
                 f.write(data)
             os.replace(tmp, path)
         except BaseException:
-            try:
+            with contextlib.suppress(FileNotFoundError):
                 os.unlink(tmp)
-            except FileNotFoundError:
-                pass
             raise
 
     def get(self, key: str) -> bytes:
@@ -81,7 +80,5 @@ class LocalBlobStore:
             raise BlobNotFound(key) from None
 
     def delete(self, key: str) -> None:
-        try:
+        with contextlib.suppress(FileNotFoundError):
             self._path(key).unlink()
-        except FileNotFoundError:
-            pass

@@ -11,6 +11,7 @@ as the in-process runner does.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import uuid
 from typing import Any
@@ -52,10 +53,8 @@ class CeleryJobRunner:
                                     queue=self.queue)
         except Exception as exc:
             await asyncio.to_thread(self.blobs.delete, input_key(job.id))
-            try:
+            with contextlib.suppress(ProblemError):
                 await self.store.delete(job.id)
-            except ProblemError:
-                pass
             if isinstance(exc, ProblemError):
                 raise
             log.error("job %s: could not queue it: %r", job.id, exc)

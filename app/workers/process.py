@@ -11,6 +11,7 @@ and the Celery worker's children.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
 import resource
@@ -40,10 +41,8 @@ def preload() -> None:
 def init_engine_process(memory_mb: int) -> None:
     """In a fresh engine process: lower the priority, tune malloc, cap the address space at
     ``memory_mb`` MiB (0: no cap)."""
-    try:
+    with contextlib.suppress(OSError):  # not allowed here: run at the server's priority
         os.nice(NICENESS)
-    except OSError:  # not allowed here: run at the server's priority
-        pass
     tune_malloc()
     if memory_mb > 0:
         limit = memory_mb * 1024 * 1024

@@ -152,25 +152,25 @@ def test_busy_answer_comes_before_the_upload_is_read_and_the_connection_survives
         return (b"POST /v1/embed HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary="
                 + boundary.encode() + b"\r\nContent-Length: %d\r\n" % len(body) + extra + b"\r\n" + body)
 
-    with serve(tmp_path / "server.log", workers="1", queue_size="1") as server:
-        with httpx.Client(base_url=server.base, timeout=60) as http:
-            job = http.post("/v1/jobs/embed", files={"mesh": ("big.ply", big_ply)}, data={"key": CANARY_KEY})
-            assert job.status_code == 202
-            with socket.create_connection(("127.0.0.1", server.port), timeout=30) as sock:
-                for extra in (b"", b""):  # twice on one kept-alive connection
-                    start = time.perf_counter()
-                    sock.sendall(request(extra))
-                    answer = _read_answer(sock)
-                    assert answer.startswith(b"HTTP/1.1 429 "), answer[:200]
-                    assert b"retry-after" in answer.lower() and time.perf_counter() - start < 1.0
-            with socket.create_connection(("127.0.0.1", server.port), timeout=30) as sock:
-                sock.sendall(request(b"Connection: close\r\n"))
-                answer = b""
-                while chunk := sock.recv(65536):  # a reset here would raise ConnectionResetError
-                    answer += chunk
+    with serve(tmp_path / "server.log", workers="1", queue_size="1") as server, \
+            httpx.Client(base_url=server.base, timeout=60) as http:
+        job = http.post("/v1/jobs/embed", files={"mesh": ("big.ply", big_ply)}, data={"key": CANARY_KEY})
+        assert job.status_code == 202
+        with socket.create_connection(("127.0.0.1", server.port), timeout=30) as sock:
+            for extra in (b"", b""):  # twice on one kept-alive connection
+                start = time.perf_counter()
+                sock.sendall(request(extra))
+                answer = _read_answer(sock)
                 assert answer.startswith(b"HTTP/1.1 429 "), answer[:200]
-            status = http.get(f"/v1/jobs/{job.json()['id']}").json()
-            assert status["state"] in ("queued", "running", "succeeded")
+                assert b"retry-after" in answer.lower() and time.perf_counter() - start < 1.0
+        with socket.create_connection(("127.0.0.1", server.port), timeout=30) as sock:
+            sock.sendall(request(b"Connection: close\r\n"))
+            answer = b""
+            while chunk := sock.recv(65536):  # a reset here would raise ConnectionResetError
+                answer += chunk
+            assert answer.startswith(b"HTTP/1.1 429 "), answer[:200]
+        status = http.get(f"/v1/jobs/{job.json()['id']}").json()
+        assert status["state"] in ("queued", "running", "succeeded")
     assert CANARY_KEY not in server.text()
 
 

@@ -96,7 +96,7 @@ def test_local_blob_store(tmp_path):
     with pytest.raises(KeyError):
         blobs.get("a.input")
     for bad in ("../x", "a/b", ".hidden", ""):
-        with pytest.raises(ValueError):
+        with pytest.raises(ValueError, match="blob key"):
             blobs.put(bad, b"")
 
 

@@ -122,11 +122,11 @@ def test_crop_removes_requested_fraction(bumpy):
 
 def test_simplify_and_subdivide_counts(sphere):
     v, f = sphere
-    v2, f2 = A.simplify(v, f, 0.5, None)
+    _v2, f2 = A.simplify(v, f, 0.5, None)
     assert abs(len(f2) / len(f) - 0.5) < 0.1
-    v3, f3 = A.subdivide(v, f, "midpoint", None)
+    _v3, f3 = A.subdivide(v, f, "midpoint", None)
     assert len(f3) == 4 * len(f)
-    v4, f4 = A.subdivide(v, f, "loop", None)
+    _v4, f4 = A.subdivide(v, f, "loop", None)
     assert len(f4) == 4 * len(f)
 
 

@@ -60,7 +60,7 @@ def test_regular_meshes_carry_32_bits(shape: str, method: str) -> None:
         for _ in range(5):
             m = m.subdivide()
     payload = "10110011100011110000101011001010"
-    marked, report = embed_mesh(m.vertices, m.faces, "regular", payload=payload, method=method)
+    marked, _report = embed_mesh(m.vertices, m.faces, "regular", payload=payload, method=method)
     res = detect_mesh([(marked, m.faces)], "regular")
     assert res.detected and res.payload == payload and res.parts[0]["regular_fallback"]
     # translation, uniform scale and re-ordering keep the fallback frame
@@ -88,7 +88,7 @@ def test_too_little_capacity_is_a_clear_error() -> None:
 
 
 @pytest.mark.parametrize(
-    "vertices,faces",
+    ("vertices", "faces"),
     [
         (np.eye(3), np.array([[0, 1, 2]])),                       # a single triangle
         (np.random.default_rng(0).normal(size=(50, 3)), np.zeros((0, 3), int)),  # a point cloud
@@ -140,7 +140,7 @@ def test_rounding_that_merges_neighbours_keeps_connectivity() -> None:
     v, f = irregular_sphere(2000, 5)
     step = 0.05
     q = np.round(v / step) * step
-    wv, wf, slots = weld(q, f)
+    _wv, wf, _slots = weld(q, f)
     assert len(wf) == len(f)  # no face collapsed
     # a soup of the same mesh (3 slots per face) welds back to shared vertices
     soup = q[f].reshape(-1, 3)

@@ -85,7 +85,7 @@ def test_varying_lists_read_and_write(endian: str, vertex_list: bool) -> None:
 
 def test_varying_lists_are_scanned_in_batches() -> None:
     data = _mixed("<", 50_000)
-    encoding, elements, body = ply._parse_header(data)
+    _encoding, elements, body = ply._parse_header(data)
     vertex, face = elements[0], elements[1]
     pos = body + vertex.count * 12
     items = list(ply._runs(data, pos, face, "<"))
@@ -111,7 +111,7 @@ def test_fuzz_case_turbineblade_float64_face_list() -> None:
     assert bad != data
     with pytest.raises(MeshFormatError):
         read_mesh(bad, "turbineblade.ply")
-    encoding, elements, body = ply._parse_header(bad)
+    _encoding, elements, body = ply._parse_header(bad)
     face = next(e for e in elements if e.name == "face")
     pos = body + elements[0].count * elements[0].min_size()
     # the 199,034 records (most of them empty lists) are walked in a few dozen batches

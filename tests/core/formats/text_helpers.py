@@ -100,7 +100,7 @@ def move_some(doc: MeshDocument, fraction: float = 0.01, seed: int = 0) -> tuple
     """New positions with about ``fraction`` of the vertices moved by ~1e-3 of the bbox diagonal."""
     v = doc.parts[0].vertices
     rng = np.random.default_rng(seed)
-    n = max(1, int(round(len(v) * fraction)))
+    n = max(1, round(len(v) * fraction))
     sel = np.sort(rng.choice(len(v), n, replace=False))
     diag = float(np.linalg.norm(v.max(0) - v.min(0))) or 1.0
     new = v.copy()
