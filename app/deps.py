@@ -2,7 +2,7 @@
 
 All are ``async def`` although none awaits: FastAPI runs a plain ``def`` dependency in its thread
 pool, and under load those hops (four per upload) cost the event loop more than the checks
-themselves (13 % of the API process's main thread in a py-spy profile at 5x capacity)."""
+themselves."""
 
 from __future__ import annotations
 

@@ -46,9 +46,8 @@ def _field_label(name: str) -> str:
 
 class _StrictUTF8Parser(MultiPartParser):
     #: uploads up to this size stay in memory: the route reads the whole file into bytes for the
-    #: worker anyway, so Starlette's default (1 MiB, then a temporary file) only added a disk write
-    #: and read to every larger mesh (measured: the API process went from 16-20 to 11-14 ms of CPU
-    #: per 1.3 MB embed request)
+    #: worker anyway, so Starlette's default (1 MiB, then a temporary file) would only add a disk
+    #: write and read to every larger mesh
     spool_max_size = 16 * 1024 * 1024
 
     def __init__(self, *args: Any, fields: frozenset[str], **kwargs: Any) -> None:

@@ -2,13 +2,12 @@
 
 The engine's arrays for a 1M-vertex mesh are tens of MiB each; glibc serves blocks over its mmap
 threshold (at most 32 MiB) with fresh ``mmap`` calls and unmaps them on ``free``, so every such
-array faults its pages in again from the kernel, which also zeroes them.  Measured on a
-1M-vertex detection in a fresh process on the benchmark machine: 1.4 s of user time plus 1.2 s
-of system time (page faults on transparent huge pages); with mmap turned off, so that freed
-memory goes back to the heap and is reused by the next array, the system time drops to 0.2 s on
-the first call and to ~0 afterwards (bench/results/speed.md).  The cost: a process keeps up to
-``keep_mb`` of freed heap; service workers are capped (``RLIMIT_AS``) and recycled, so that
-memory stays bounded.
+array faults its pages in again from the kernel, which also zeroes them: on a large mesh that
+system time rivals the computation itself.  With mmap turned off, freed memory goes back to the
+heap and is reused by the next array, so a second call faults almost nothing (the figures are in
+``core/README.md`` and ``bench/results/speed.md``).  The cost: a process keeps up to ``keep_mb``
+of freed heap; service workers are capped (``RLIMIT_AS``) and recycled, so that memory stays
+bounded.
 """
 
 from __future__ import annotations

@@ -115,8 +115,7 @@ def soft_decode(llr: np.ndarray) -> Decoded:
         over the 16 codewords of each block.
     """
     blocks = np.asarray(llr, np.float64).reshape(-1, 7)
-    signs = 1.0 - 2.0 * _CODEWORDS  # (16, 7): +1 for a 0 bit
-    score = 0.5 * blocks @ signs.T  # (k, 16) log-likelihood of each codeword (up to a constant)
+    score = 0.5 * blocks @ _SIGNS.T  # (k, 16) log-likelihood of each codeword (up to a constant)
     score -= score.max(axis=1, keepdims=True)
     post = np.exp(score)
     post /= post.sum(axis=1, keepdims=True)

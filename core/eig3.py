@@ -1,15 +1,15 @@
 """Closed-form eigen-decomposition of many symmetric 3x3 matrices at once.
 
-``numpy.linalg.eigh`` on a ``(k, 3, 3)`` stack calls LAPACK once per matrix: about 2 us each,
-0.45 s for the 240k carriers of a 1M-vertex mesh, the largest single cost of detection.  The
-solver here is D. Eberly's "A Robust Eigensolver for 3x3 Symmetric Matrices" (Geometric Tools,
-2014) written as whole-array numpy on the six distinct entries (contiguous columns, no per-matrix
-work): eigenvalues from the trigonometric solution of the characteristic cubic of the normalised
-matrix, the eigenvector of the best separated eigenvalue from the largest cross product of two
-rows of ``A - l I``, the middle one from the 2x2 problem in its orthogonal complement, the third
-as a cross product; the eigenvalues are then refined as Rayleigh quotients (the cubic loses
-half the digits of a double eigenvalue, the quotient of an orthonormal basis does not).  The
-tests compare it with LAPACK on random, rank-deficient and (near-)degenerate matrices.
+``numpy.linalg.eigh`` on a ``(k, 3, 3)`` stack calls LAPACK once per matrix, which made it the
+largest single cost of detecting a large mesh (``core/README.md`` has the profile). The solver here
+is D. Eberly's "A Robust Eigensolver for 3x3 Symmetric Matrices" (Geometric Tools, 2014) written as
+whole-array numpy on the six distinct entries (contiguous columns, no per-matrix work): eigenvalues
+from the trigonometric solution of the characteristic cubic of the normalised matrix, the
+eigenvector of the best separated eigenvalue from the largest cross product of two rows of
+``A - l I``, the middle one from the 2x2 problem in its orthogonal complement, the third as a cross product;
+the eigenvalues are then refined as Rayleigh quotients (the cubic loses half the digits of a double
+eigenvalue, the quotient of an orthonormal basis does not). The tests compare it with LAPACK on
+random, rank-deficient and (near-)degenerate matrices.
 """
 
 from __future__ import annotations

@@ -48,8 +48,8 @@ class Adjacency:
     def ring_sum_u64(self, values: np.ndarray) -> np.ndarray:
         """Sum of ``values`` (uint64) over each vertex's neighbours, modulo 2**64.
 
-        A sparse matrix-vector product: one pass in C, 2-3x faster than gathering the
-        ``2e`` neighbour values and reducing them per row."""
+        A sparse matrix-vector product: one pass in C, faster than gathering the ``2e``
+        neighbour values and reducing them per row."""
         return np.asarray(self.ring_matrix @ np.asarray(values, np.uint64))
 
     def ring_entries(self, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -150,5 +150,5 @@ def bbox_diagonal(vertices: np.ndarray) -> float:
     """Length of the axis-aligned bounding-box diagonal (0 for an empty array)."""
     if len(vertices) == 0:
         return 0.0
-    # column by column: reducing an (n, 3) array along axis 0 is ~10x slower
+    # column by column: reducing an (n, 3) array along axis 0 is much slower
     return float(np.sqrt(sum((float(col.max()) - float(col.min())) ** 2 for col in vertices.T)))
