@@ -56,7 +56,7 @@ class _Entry:
 def _mp_context() -> Any:
     if "forkserver" in multiprocessing.get_all_start_methods():
         ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(list(PRELOAD))
+        ctx.set_forkserver_preload([*PRELOAD, __name__])  # and this module: the workers' functions
         return ctx
     return multiprocessing.get_context("spawn")
 
