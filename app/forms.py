@@ -4,7 +4,8 @@ Starlette decodes a text field that is not valid UTF-8 as Latin-1 without a word
 silently turn a mangled key into a different key, and when a field comes twice it keeps the last
 one (two keys, or two meshes, would be a silent choice).  :class:`StrictFormRoute` parses
 multipart bodies with a parser that rejects both (``bad-form``, 422), and with tight limits: one
-file, :data:`MAX_FORM_FIELDS` text fields of at most :data:`MAX_TEXT_FIELD_BYTES` each.
+file (the route's ``max_files``), :data:`MAX_FORM_FIELDS` text fields of at most
+:data:`MAX_TEXT_FIELD_BYTES` each.
 """
 
 from __future__ import annotations
@@ -35,9 +36,9 @@ MAX_FORM_FIELDS = 16
 #: bytes of one text field: a key is at most 1024 characters (4 KiB of UTF-8)
 MAX_TEXT_FIELD_BYTES = 64 * 1024
 #: the form fields of the routes; other names are not repeated in messages
-FIELD_NAMES = ("mesh", "key", "payload", "method", "strength")
+FIELD_NAMES = ("mesh", "original", "key", "payload", "method", "strength")
 FORMAT_LABELS = [spec.label for spec in FORMATS.values()]
-_FORM_LIMITS = {"max_files": 1, "max_fields": MAX_FORM_FIELDS, "max_part_size": MAX_TEXT_FIELD_BYTES}
+_FORM_LIMITS = {"max_fields": MAX_FORM_FIELDS, "max_part_size": MAX_TEXT_FIELD_BYTES}
 
 
 def _field_label(name: str) -> str:
@@ -97,12 +98,12 @@ class _StrictUTF8Parser(MultiPartParser):
 
 
 class StrictFormRequest(Request):
-    def __init__(self, scope: Any, receive: Receive, fields: frozenset[str]) -> None:
+    def __init__(self, scope: Any, receive: Receive, fields: frozenset[str], max_files: int = 1) -> None:
         super().__init__(scope, receive)
-        self.fields = fields
+        self.fields, self.max_files = fields, max_files
 
     async def form(self, **limits: Any) -> FormData:  # type: ignore[override]
-        limits = {**limits, **_FORM_LIMITS}
+        limits = {**limits, **_FORM_LIMITS, "max_files": self.max_files}
         content_type, _ = parse_options_header(self.headers.get("content-type", ""))
         if content_type != b"multipart/form-data":
             try:
@@ -122,6 +123,9 @@ class StrictFormRequest(Request):
 
 
 class StrictFormRoute(APIRoute):
+    #: file fields a form of this route may carry
+    max_files = 1
+
     def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
         handler = super().get_route_handler()
         fields = _form_fields(self.dependant)
@@ -139,7 +143,7 @@ class StrictFormRoute(APIRoute):
                 else:
                     response.background = BackgroundTask(_discard_body, request.receive)
                 return response
-            return await handler(StrictFormRequest(request.scope, request.receive, fields))
+            return await handler(StrictFormRequest(request.scope, request.receive, fields, self.max_files))
 
         return strict_handler
 
@@ -179,6 +183,12 @@ class PooledFormRoute(StrictFormRoute):
         return pool.refusal() if pool is not None else None
 
 
+class PreviewFormRoute(PooledFormRoute):
+    """The preview's form carries two files: the mesh and the original it may be compared with."""
+
+    max_files = 2
+
+
 def _options(**fields: Any) -> Options:
     """The engine's options from the form's fields; a refusal is a ``bad-form`` problem."""
     try:
@@ -188,6 +198,9 @@ def _options(**fields: Any) -> Options:
 
 
 MeshFile = Annotated[UploadFile, File(description=f"The mesh: {spoken_list(FORMAT_LABELS)}.")]
+OriginalFile = Annotated[UploadFile | None, File(
+    description="The file `mesh` was watermarked from (optional). When both have the same parts, "
+                "vertex counts and triangles, the answer carries each vertex's displacement.")]
 Payload = Annotated[str | None, Form(description=f"Bitstring of 1-{MAX_PAYLOAD_BITS} '0'/'1'. Embed: the "
                                      "payload (default: a 32-bit code derived from the key). Detect: the "
                                      "expected payload, to get bit errors and a p-value.",
@@ -236,6 +249,15 @@ async def capacity_task(
     return Task("capacity", data, options, filename=mesh.filename, limits=settings.limits())
 
 
+async def preview_task(settings: SettingsDep, mesh: MeshFile, original: OriginalFile = None) -> Task:
+    data = await mesh.read()
+    before = None if original is None else await original.read()
+    return Task("preview", data, Options(), filename=mesh.filename, original=before,
+                original_filename=None if original is None else original.filename,
+                limits=settings.limits())
+
+
 EmbedForm = Annotated[Task, Depends(embed_task)]
 DetectForm = Annotated[Task, Depends(detect_task)]
 CapacityForm = Annotated[Task, Depends(capacity_task)]
+PreviewForm = Annotated[Task, Depends(preview_task)]

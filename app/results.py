@@ -8,8 +8,10 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
+from app.preview import PREVIEW_MEDIA_TYPE, pack
 from core.api import EmbeddedFile
 from core.formats import FORMATS
+from core.preview import PreviewGeometry
 
 #: documented response headers of an embedding (name -> description); the README lists the same
 EMBED_HEADERS: dict[str, str] = {
@@ -72,3 +74,9 @@ def embedded_result(embedded: EmbeddedFile, filename: str | None) -> Rendered:
 def json_result(value: Any) -> Rendered:
     """A report with ``to_dict()`` as a JSON body."""
     return Rendered(_json(value.to_dict()), "application/json")
+
+
+def preview_result(geometry: PreviewGeometry) -> Rendered:
+    """A mesh for the viewer in the binary layout of :mod:`app.preview`, never cached (it
+    depends on files the URL does not name)."""
+    return Rendered(pack(geometry), PREVIEW_MEDIA_TYPE, {"Cache-Control": "no-store"})

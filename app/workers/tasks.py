@@ -2,7 +2,8 @@
 value becomes an answer.  Job kinds (``/v1/jobs/{kind}``) are the kinds marked ``job``.
 
 A :class:`Task` holds the uploaded bytes and the engine's :class:`~core.options.Options` (never
-numpy or trimesh objects), so sending one to a worker process is one pickle of bytes.
+numpy or trimesh objects), so sending one to a worker process is one pickle of bytes.  A preview
+may carry a second file, the ``original`` its mesh is compared with.
 """
 
 from __future__ import annotations
@@ -12,9 +13,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from app.results import Rendered, embedded_result, json_result
+from app.results import Rendered, embedded_result, json_result, preview_result
 from core import api
 from core.formats import DEFAULT_LIMITS, Limits
+from core.preview import PreviewGeometry, preview_file
 
 
 @dataclass(frozen=True)
@@ -26,6 +28,9 @@ class Task:
     options: api.Options
     filename: str | None = None
     limits: Limits = DEFAULT_LIMITS
+    #: preview: the file ``data`` was watermarked from, and its name
+    original: bytes | None = None
+    original_filename: str | None = None
 
     @property
     def key(self) -> str | None:
@@ -61,6 +66,11 @@ def _capacity(task: Task, progress: api.Progress) -> api.CapacityReport:
     return api.capacity(task.data, task.options, filename=task.filename, limits=task.limits)
 
 
+def _preview(task: Task, progress: api.Progress) -> PreviewGeometry:
+    return preview_file(task.data, filename=task.filename, original=task.original,
+                        original_filename=task.original_filename, limits=task.limits)
+
+
 def _rendered_embedding(task: Task, value: api.EmbeddedFile) -> Rendered:
     return embedded_result(value, task.filename)
 
@@ -69,10 +79,15 @@ def _rendered_json(task: Task, value: Any) -> Rendered:
     return json_result(value)
 
 
+def _rendered_preview(task: Task, value: PreviewGeometry) -> Rendered:
+    return preview_result(value)
+
+
 TASKS: dict[str, TaskKind] = {
     "embed": TaskKind(_embed, _rendered_embedding, job=True),
     "detect": TaskKind(_detect, _rendered_json, job=True),
     "capacity": TaskKind(_capacity, _rendered_json, job=False),
+    "preview": TaskKind(_preview, _rendered_preview, job=False),
 }
 JOB_KINDS = tuple(name for name, kind in TASKS.items() if kind.job)
 
