@@ -19,6 +19,7 @@ from app.metrics import Metrics
 from app.middleware import BodyLimitMiddleware, MetricsMiddleware
 from app.problems import BAD_FORM, Problem, install_problem_handlers, problem_responses
 from app.routes import V1_ROUTERS, health
+from app.web import router as web_router
 from app.workers.pool import WorkerPool
 
 log = logging.getLogger("meshmark.app")
@@ -109,6 +110,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for router in V1_ROUTERS:
         app.include_router(router, dependencies=[Depends(require_caller)])
     app.include_router(health.router)
+    app.include_router(web_router)  # the page at /, open like /docs: its API calls carry the key
 
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)  # outermost: sees the 413s too
