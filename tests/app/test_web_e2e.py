@@ -293,3 +293,22 @@ def test_with_api_keys_the_page_asks_for_one(playwright: Any, browser: Any,
         assert page.is_hidden("#error")
         assert page.evaluate("() => [localStorage.length, sessionStorage.length]") == [0, 0]
         web.close()
+
+
+def test_files_too_large_to_compare_show_the_marked_one_alone(
+        browser: Any, tmp_path_factory: pytest.TempPathFactory) -> None:
+    bunny = shared_mesh_path("bun_zipper.ply")  # 3.0 MB, marked 3.2 MB: one fits the limit, both do not
+    limit = str(4 * 1024 * 1024)
+    with serve(tmp_path_factory.mktemp("web-small") / "server.log", max_upload_bytes=limit) as small:
+        web = Page(browser, small.base)
+        page = web.page
+        web.choose(bunny)
+        web.wait_preview()
+        page.fill("#key", KEY)
+        page.click("#embed-form button")
+        page.wait_for_selector("#download")
+        page.wait_for_selector("#view-msg:has-text('No heat map')")
+        assert page.get_attribute("#view", "data-heat") == "off"
+        assert "35,947 vertices" in page.inner_text("#view-msg")
+        assert page.is_hidden("#legend")
+        web.close()

@@ -85,10 +85,10 @@
     }
     if (res.status === 401) askForApiKey();
     if (body && typeof body.title === "string") {
-      return { title: body.title, detail: typeof body.detail === "string" ? body.detail : "" };
+      return { title: body.title, detail: typeof body.detail === "string" ? body.detail : "", status: res.status };
     }
     return { title: "The server answered " + res.status + (res.statusText ? " " + res.statusText : ""),
-             detail: res.status === 400 ? "The request could not be read." : "" };
+             detail: res.status === 400 ? "The request could not be read." : "", status: res.status };
   }
 
   class ProblemShown extends Error {
@@ -219,6 +219,12 @@
       res = await call("/v1/preview", { method: "POST", body: form({}, files) });
     } catch (e) {
       if (!(e instanceof ProblemShown)) throw e;
+      if (original && e.problem.status === 413) {
+        // both files in one request are over the server's limit: show the marked one alone
+        const head = await preview(mesh, name);
+        if (head) msg.textContent += " No heat map: the two files together are larger than one request may be.";
+        return head;
+      }
       msg.textContent = "No preview: " + e.problem.title + (e.problem.detail ? ". " + e.problem.detail : "");
       return null;
     }
