@@ -198,6 +198,28 @@ def test_a_missing_key_is_asked_for_before_any_request(web: Page) -> None:
     assert len(web.requests) == sent
 
 
+def test_every_control_is_labelled_and_reached_by_the_keyboard(web: Page) -> None:
+    page = web.page
+    unlabelled = page.evaluate(
+        "() => [...document.querySelectorAll('input, select')].filter(e => !e.labels.length).map(e => e.id)")
+    assert unlabelled == []
+    web.choose(shared_mesh_path("spot.obj"))  # enables the action buttons
+    web.wait_preview()
+    page.focus("body")
+    reached = []
+    for _ in range(30):
+        page.keyboard.press("Tab")
+        reached.append(page.evaluate("() => document.activeElement.id || document.activeElement.textContent"))
+    for wanted in ("mesh", "key", "payload", "method", "strength", "Mark", "Check", "Measure", "background",
+                   "view"):
+        assert wanted in reached, (wanted, reached)
+    # the view's keys do not scroll the page while it has the focus
+    page.focus("#view")
+    before = page.evaluate("() => window.scrollY")
+    page.keyboard.press("ArrowDown")
+    assert page.evaluate("() => window.scrollY") == before
+
+
 def test_the_view_turns_by_keyboard_and_mouse_and_resets(web: Page) -> None:
     page = web.page
     web.choose(shared_mesh_path("spot.obj"))
