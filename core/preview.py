@@ -141,32 +141,42 @@ def cluster_vertices(V: np.ndarray, F: np.ndarray, values: np.ndarray | None, ma
         q = np.clip(((V - lo) * (cells / size)).astype(np.int64), 0, cells)
         key = (q[:, 0] * (cells + 1) + q[:, 1]) * (cells + 1) + q[:, 2]
         _, cluster = np.unique(key, return_inverse=True)
-        f = cluster.ravel()[F]
-        f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
-        f = _unique_triangles(f)
-        used, f = np.unique(f, return_inverse=True)
-        f = f.reshape(-1, 3)
-        if (len(f) <= max_triangles and len(used) <= max_vertices) or cells == 1:
+        cluster = cluster.ravel()
+        f = cluster[F]
+        f = _unique_triangles(f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])],
+                              int(cluster.max(initial=0)) + 1)
+        used = np.zeros(int(cluster.max(initial=0)) + 1, bool)
+        used[f.ravel()] = True
+        n_used = int(used.sum())
+        if (len(f) <= max_triangles and n_used <= max_vertices) or cells == 1:
             break
-        shrink = min(np.sqrt(max_triangles / max(len(f), 1)), np.sqrt(max_vertices / max(len(used), 1)))
+        shrink = min(np.sqrt(max_triangles / max(len(f), 1)), np.sqrt(max_vertices / max(n_used, 1)))
         cells = max(1, min(cells - 1, int(cells * shrink * 0.95)))
-    counts = np.bincount(cluster.ravel())
-    centres = np.stack([np.bincount(cluster.ravel(), V[:, k]) / counts for k in range(3)], axis=1)
+    renumber = np.cumsum(used) - 1
+    f = renumber[f]
+    used = np.flatnonzero(used)
+    counts = np.bincount(cluster)
+    centres = np.stack([np.bincount(cluster, V[:, k]) / counts for k in range(3)], axis=1)
     out_values = None
     if values is not None:
-        peak = np.full(len(counts), -np.inf)
-        np.maximum.at(peak, cluster.ravel(), values)
-        out_values = peak[used]
+        order = np.argsort(cluster, kind="stable")
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        out_values = np.maximum.reduceat(values[order], starts)[used]  # every cluster has a vertex
     return centres[used], f.astype(np.int64), out_values
 
 
-def _unique_triangles(f: np.ndarray) -> np.ndarray:
-    """``f`` without triangles over the same three vertices as an earlier one (first kept)."""
+def _unique_triangles(f: np.ndarray, n: int) -> np.ndarray:
+    """``f`` (indices below ``n``) without triangles over the same three vertices as an earlier
+    one (the first is kept)."""
     if len(f) == 0:
         return f
-    s = np.ascontiguousarray(np.sort(f, axis=1))
-    _, first = np.unique(s.view(np.dtype((np.void, s.itemsize * 3))).ravel(), return_index=True)
-    return f[np.sort(first)]
+    s = np.sort(f, axis=1)
+    if n < 2_000_000:  # n**3 fits an int64: one integer per triangle sorts much faster than rows
+        keys = (s[:, 0] * n + s[:, 1]) * n + s[:, 2]
+    else:
+        keys = np.ascontiguousarray(s).view(np.dtype((np.void, s.itemsize * 3))).ravel()
+    _, first = np.unique(keys, return_index=True)
+    return f if len(first) == len(f) else f[np.sort(first)]
 
 
 def _read(data: bytes, filename: str | None, limits: Limits, which: str) -> MeshDocument:

@@ -11,6 +11,7 @@ from core import api
 from core.errors import DegenerateMeshError, MeshFormatError, UnsupportedFormatError
 from core.formats import MeshDocument, MeshPart, read_mesh
 from core.preview import (
+    _unique_triangles,
     cluster_vertices,
     merged_parts,
     preview_file,
@@ -148,3 +149,12 @@ def test_a_large_mesh_is_simplified_under_the_caps_with_its_peaks():
     assert small.displacement.max() >= 0.5 * full.displacement.max()
     lo, hi = full.positions.min(axis=0), full.positions.max(axis=0)
     assert np.all(small.positions >= lo - 1e-6) and np.all(small.positions <= hi + 1e-6)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.tuples(*[st.integers(0, 9)] * 3), min_size=1, max_size=50))
+def test_triangle_dedup_is_the_same_for_small_and_huge_vertex_counts(rows):
+    f = np.array(rows, np.int64)
+    small, huge = _unique_triangles(f, 10), _unique_triangles(f, 3_000_000)  # integer keys / raw rows
+    np.testing.assert_array_equal(small, huge)
+    assert len({tuple(sorted(t)) for t in rows}) == len(small)
