@@ -293,6 +293,20 @@ def test_without_webgl_the_page_says_so_and_still_works(playwright: Any, server:
         browser.close()
 
 
+def test_webgl1_draws_the_same_model(playwright: Any, server: Server) -> None:
+    browser = launch(playwright, "--disable-webgl2")
+    try:
+        web = Page(browser, server.base)
+        assert web.page.evaluate("() => !document.createElement('canvas').getContext('webgl2')")
+        web.choose(shared_mesh_path("spot.obj"))
+        web.wait_preview()
+        drawn, heat, _ = web.view_pixels()
+        assert drawn > 20_000 and heat == 0
+        web.close()
+    finally:
+        browser.close()
+
+
 def test_with_api_keys_the_page_asks_for_one(playwright: Any, browser: Any,
                                              tmp_path_factory: pytest.TempPathFactory) -> None:
     with serve(tmp_path_factory.mktemp("web-keys") / "server.log", api_keys="page-key-1") as keyed:
