@@ -327,6 +327,8 @@ def test_with_api_keys_the_page_asks_for_one(playwright: Any, browser: Any,
         page.wait_for_selector("#download")
         web.wait_preview(heat=True)
         assert page.is_hidden("#error")
+        page.click("#check-marked")  # the marked file straight from memory, with the API key
+        page.wait_for_selector("#result h3:has-text('Watermark found')")
         assert page.evaluate("() => [localStorage.length, sessionStorage.length]") == [0, 0]
         web.close()
 

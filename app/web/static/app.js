@@ -5,7 +5,7 @@
 
 (function () {
   const $ = id => document.getElementById(id);
-  const state = { file: null, marked: null, markedName: null, downloadUrl: null, job: null, busy: false };
+  const state = { file: null, downloadUrl: null, job: null, busy: false };
   const viewer = new window.MeshMarkViewer.Viewer($("view"));
 
   // ---- small helpers ------------------------------------------------------------------------
@@ -249,9 +249,9 @@
 
   function setFile(file) {
     state.file = file;
-    state.marked = null;
     clearMessages();
     if (state.downloadUrl) { URL.revokeObjectURL(state.downloadUrl); state.downloadUrl = null; }
+    $("marked").replaceChildren();
     $("file-info").textContent = file.name + ", " + formatBytes(file.size);
     const threshold = Number(document.body.dataset.jobThreshold || 8 * 1024 * 1024);
     $("background").checked = file.size > threshold;
@@ -291,13 +291,12 @@
                      strength: $("strength").value };
     const body = form(fields, [["mesh", file, file.name]]);
     setStatus("Marking " + file.name + "…");
+    $("marked").replaceChildren();
     const res = $("background").checked ? await runJob("embed", body)
       : await call("/v1/embed", { method: "POST", body });
     const blob = await res.blob();
     const report = JSON.parse(res.headers.get("X-MeshMark-Report") || "{}");
     const name = fileNameFrom(res, "marked-" + file.name);
-    state.marked = blob;
-    state.markedName = name;
     if (state.downloadUrl) URL.revokeObjectURL(state.downloadUrl);
     state.downloadUrl = URL.createObjectURL(blob);
     const link = el("a", { href: state.downloadUrl, download: name, id: "download", class: "button" },
@@ -311,8 +310,10 @@
       el("p", {}, "Vertices moved: " + grouped(report.vertices_moved) + ". Typical move " +
          percentOfSize(report.rms_displacement) + " of the model's size, largest " +
          percentOfSize(report.max_displacement) + "."),
-      el("p", {}, link),
       el("p", { class: "hint" }, "Keep the key: without it nobody, you included, can find the mark."));
+    $("marked").replaceChildren(link, " ", el("button", { type: "button", id: "check-marked", class: "act" },
+                                                "Check the marked file"));
+    $("check-marked").addEventListener("click", action(() => doDetect(new File([blob], name))));
     setStatus("Marked: " + name + " is ready to download.");
     preview(blob, name, file, file.name).catch(reportUnexpected);
   }
@@ -354,9 +355,8 @@
       "orange at least 70 %, red less."));
   }
 
-  async function doDetect() {
+  async function doDetect(file = state.file) {
     if (!needKey()) return;
-    const file = state.file;
     const body = form({ key: $("key").value, method: $("detect-method").value,
                         payload: $("expected").value.trim() }, [["mesh", file, file.name]]);
     setStatus("Looking for the mark in " + file.name + "…");
@@ -433,7 +433,7 @@
   }
 
   $("embed-form").addEventListener("submit", action(doEmbed));
-  $("detect-form").addEventListener("submit", action(doDetect));
+  $("detect-form").addEventListener("submit", action(() => doDetect()));
   $("capacity-form").addEventListener("submit", action(doCapacity));
   $("cancel").addEventListener("click", () => {
     if (state.job) call(state.job, { method: "DELETE" }).catch(() => {});
