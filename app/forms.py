@@ -2,10 +2,10 @@
 
 Starlette decodes a text field that is not valid UTF-8 as Latin-1 without a word, which would
 silently turn a mangled key into a different key, and when a field comes twice it keeps the last
-one (two keys, or two meshes, would be a silent choice).  :class:`StrictFormRoute` parses
-multipart bodies with a parser that rejects both (``bad-form``, 422), and with tight limits: one
-file (the route's ``max_files``), :data:`MAX_FORM_FIELDS` text fields of at most
-:data:`MAX_TEXT_FIELD_BYTES` each.
+one (two keys, or two meshes, would be a silent choice).  :class:`StrictFormRoute` parses bodies
+with :class:`app.multipart.FormParser`, which rejects both (``bad-form``, 422), with tight limits
+(the route's ``max_files`` files, :data:`MAX_FORM_FIELDS` text fields of at most
+:data:`MAX_TEXT_FIELD_BYTES` each), and answers a body that is not ``multipart/form-data`` with ``not-multipart`` (415) and what to send.
 """
 
 from __future__ import annotations
@@ -18,13 +18,12 @@ from fastapi.routing import APIRoute
 from python_multipart.multipart import parse_options_header
 from starlette.background import BackgroundTask
 from starlette.datastructures import FormData
-from starlette.exceptions import HTTPException
-from starlette.formparsers import MultiPartException, MultiPartParser
 from starlette.types import Receive
 
 from app.deps import SettingsDep, WatermarkKey
 from app.inputs import PAYLOAD_SCHEMA, STRENGTH_SCHEMA
-from app.problems import BAD_FORM, ProblemError, problem_response
+from app.multipart import FormError, FormParser
+from app.problems import BAD_FORM, NOT_MULTIPART, ProblemError, problem_response
 from app.workers.tasks import Task
 from core.coding import MAX_PAYLOAD_BITS
 from core.errors import PayloadError
@@ -35,91 +34,44 @@ from core.options import DEFAULT_METHOD, DEFAULT_STRENGTH, MAX_STRENGTH, METHODS
 MAX_FORM_FIELDS = 16
 #: bytes of one text field: a key is at most 1024 characters (4 KiB of UTF-8)
 MAX_TEXT_FIELD_BYTES = 64 * 1024
-#: the form fields of the routes; other names are not repeated in messages
-FIELD_NAMES = ("mesh", "original", "key", "payload", "method", "strength")
+#: uploads up to this size stay in memory: the route reads the whole file into bytes for the
+#: worker anyway, so spooling to disk at 1 MiB (Starlette's default) would only add a disk write
+#: and read to every larger mesh
+SPOOL_MAX_BYTES = 16 * 1024 * 1024
 FORMAT_LABELS = [spec.label for spec in FORMATS.values()]
-_FORM_LIMITS = {"max_fields": MAX_FORM_FIELDS, "max_part_size": MAX_TEXT_FIELD_BYTES}
-
-
-def _field_label(name: str) -> str:
-    return f"form field '{name}'" if name in FIELD_NAMES else "a form field"
-
-
-class _StrictUTF8Parser(MultiPartParser):
-    #: uploads up to this size stay in memory: the route reads the whole file into bytes for the
-    #: worker anyway, so Starlette's default (1 MiB, then a temporary file) would only add a disk
-    #: write and read to every larger mesh
-    spool_max_size = 16 * 1024 * 1024
-
-    def __init__(self, *args: Any, fields: frozenset[str], **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self._fields = fields  # the fields this route reads: those may not come twice
-        self._seen: set[str] = set()
-        self._open_parts = 0
-
-    def on_part_begin(self) -> None:
-        self._open_parts += 1
-        super().on_part_begin()
-
-    async def parse(self) -> FormData:
-        """Starlette returns what it has when the body stops inside a part (no closing boundary),
-        and leaves that part's spooled file open; this refuses such a body and closes the file."""
-        try:
-            form = await super().parse()
-        except BaseException:
-            self._close_files()
-            raise
-        if self._open_parts:
-            self._close_files()
-            raise ProblemError(BAD_FORM, "invalid multipart body: it ends inside a part "
-                               "(no closing boundary)")
-        return form
-
-    def _close_files(self) -> None:
-        for file in getattr(self, "_files_to_close_on_error", ()):
-            file.close()
-
-    def on_headers_finished(self) -> None:
-        super().on_headers_finished()
-        name = self._current_part.field_name
-        if name in self._seen and name in self._fields:  # other fields are ignored, repeated or not
-            raise ProblemError(BAD_FORM, f"{_field_label(name)} is given more than once")
-        self._seen.add(name)
-
-    def on_part_end(self) -> None:
-        self._open_parts -= 1
-        part = self._current_part
-        if part.file is None:
-            try:
-                bytes(part.data).decode("utf-8")
-            except UnicodeDecodeError:
-                raise ProblemError(BAD_FORM, f"{_field_label(part.field_name)} is not valid UTF-8") from None
-        super().on_part_end()
+#: what a caller who sent something else should do instead
+MULTIPART_HINT = ("send the mesh as a file part named 'mesh' and the options as text parts "
+                  "(curl: -F mesh=@model.obj -F key=...; Python httpx: "
+                  "files={'mesh': open(...)}, data={...})")
 
 
 class StrictFormRequest(Request):
+    """A request whose ``form()`` is parsed by :class:`app.multipart.FormParser`: multipart only,
+    strict UTF-8, no field the route reads given twice, tight limits."""
+
     def __init__(self, scope: Any, receive: Receive, fields: frozenset[str], max_files: int = 1) -> None:
         super().__init__(scope, receive)
         self.fields, self.max_files = fields, max_files
 
-    async def form(self, **limits: Any) -> FormData:  # type: ignore[override]
-        limits = {**limits, **_FORM_LIMITS, "max_files": self.max_files}
-        content_type, _ = parse_options_header(self.headers.get("content-type", ""))
-        if content_type != b"multipart/form-data":
-            try:
-                form = await super().form(**limits)
-            except HTTPException as exc:  # Starlette's 400 for a broken url-encoded form
-                raise ProblemError(BAD_FORM, f"invalid form body: {exc.detail}") from None
-            names = [name for name, _ in form.multi_items()]
-            for name in self.fields:
-                if names.count(name) > 1:
-                    raise ProblemError(BAD_FORM, f"{_field_label(name)} is given more than once")
-            return form
-        parser = _StrictUTF8Parser(self.headers, self.stream(), fields=self.fields, **limits)
+    async def form(self, **_: Any) -> FormData:  # type: ignore[override]
+        content_type = self.headers.get("content-type", "")
+        kind, _params = parse_options_header(content_type)
+        if kind != b"multipart/form-data":
+            sent = kind.decode("latin-1") if kind else "a body without Content-Type"
+            raise ProblemError(NOT_MULTIPART, f"this route takes a multipart/form-data form, not {sent}: "
+                               f"{MULTIPART_HINT}")
+        parser = FormParser(fields=self.fields, max_files=self.max_files, max_fields=MAX_FORM_FIELDS,
+                            max_part_size=MAX_TEXT_FIELD_BYTES, spool_max_size=SPOOL_MAX_BYTES)
         try:
-            return await parser.parse()
-        except MultiPartException as exc:
-            raise ProblemError(BAD_FORM, f"invalid multipart body: {exc.message}") from None
+            form = await parser.parse(content_type, self.stream())
+        except FormError as exc:
+            raise ProblemError(BAD_FORM, f"invalid multipart body: {exc}") from None
+        mesh = form.get("mesh")
+        if "mesh" in self.fields and isinstance(mesh, str):
+            await form.close()
+            raise ProblemError(BAD_FORM, "form field 'mesh' is text, not a file: send the file's content "
+                               "as a file part (curl: -F mesh=@model.obj, with the @)")
+        return form
 
 
 class StrictFormRoute(APIRoute):

@@ -40,6 +40,7 @@ class ProblemType:
 
 BAD_FORM = ProblemType("bad-form", 422, "The request form is invalid")
 UNSUPPORTED_FORMAT = ProblemType("unsupported-format", 415, "Unsupported mesh format")
+NOT_MULTIPART = ProblemType("not-multipart", 415, "The request body must be multipart/form-data")
 MALFORMED_MESH = ProblemType("malformed-mesh", 422, "Malformed mesh file")
 INVALID_INPUT = ProblemType("invalid-input", 422, "The engine rejected the input")
 TOO_LARGE = ProblemType("too-large", 413, "Input too large")
@@ -56,9 +57,9 @@ NOT_READY = ProblemType("not-ready", 503, "The service is not ready")
 INTERNAL = ProblemType("internal-error", 500, "Internal server error")
 
 PROBLEM_TYPES = (
-    BAD_FORM, UNSUPPORTED_FORMAT, MALFORMED_MESH, INVALID_INPUT, TOO_LARGE, TOO_LITTLE_CAPACITY,
-    DEGENERATE_MESH, BUSY, TIMED_OUT, WORKER_FAILED, NOT_FOUND, JOB_NOT_READY, JOB_FAILED,
-    UNAUTHORIZED, NOT_READY, INTERNAL,
+    BAD_FORM, UNSUPPORTED_FORMAT, NOT_MULTIPART, MALFORMED_MESH, INVALID_INPUT, TOO_LARGE,
+    TOO_LITTLE_CAPACITY, DEGENERATE_MESH, BUSY, TIMED_OUT, WORKER_FAILED, NOT_FOUND, JOB_NOT_READY,
+    JOB_FAILED, UNAUTHORIZED, NOT_READY, INTERNAL,
 )
 
 #: engine exception -> problem type; looked up along the exception's MRO

@@ -57,6 +57,12 @@ def _no_carrier_hint(carriers: int) -> str:
             "vertices) has none")
 
 
+def _more_carriers_hint(bits: np.ndarray | None) -> str:
+    """What a caller refused for too few carriers can change (the strength does not add any)."""
+    shorter = "" if bits is None else "a shorter payload (capacity reports the largest that fits) or "
+    return f"; use {shorter}a mesh with more vertices (a finer or subdivided version)"
+
+
 def _usable_parts(doc: MeshDocument) -> list[int]:
     reasons = {i: _unusable(p.vertices, p.faces) for i, p in enumerate(doc.parts)}
     idx = [i for i, why in reasons.items() if why is None]
@@ -255,7 +261,7 @@ def _embed_doc(doc: MeshDocument, options: Options,
                 f"too little capacity: {carriers} carriers for a {L}-bit codeword "
                 f"({'32-bit key-derived code' if bits is None else f'{len(bits)}-bit payload'} with "
                 f"{'' if bits is None else 'CRC-32 and '}Hamming(7,4)) at strength {s}"
-                + _no_carrier_hint(carriers),
+                + (_no_carrier_hint(carriers) or _more_carriers_hint(bits)),
                 carriers=carriers, needed=L)
         # the embedder's last analysis is the detector's view of the stego mesh, and so is every
         # part with room for a copy of its own (a mesh extracted from the file)
@@ -266,8 +272,8 @@ def _embed_doc(doc: MeshDocument, options: Options,
     report(0.85)
     if not ok:
         raise CapacityError("the watermark could not be made readable on this mesh at this strength "
-                            f"({carriers} carriers, {skipped} over the displacement cap)",
-                            carriers=carriers, needed=L)
+                            f"({carriers} carriers, {skipped} over the displacement cap)"
+                            f"; try a larger strength (now {s:g}, at most 1)", carriers=carriers, needed=L)
     moved, rms, mx, haus = _distortion(doc, new, {i: prepared[k][0] for k, i in enumerate(parts)})
     part_info = []
     for k, i in enumerate(parts):

@@ -11,6 +11,7 @@ from app.problems import (
     BUSY,
     DEGENERATE_MESH,
     MALFORMED_MESH,
+    NOT_MULTIPART,
     TIMED_OUT,
     TOO_LARGE,
     UNAUTHORIZED,
@@ -20,8 +21,8 @@ from app.problems import (
 from app.results import EMBED_HEADERS, MESH_MEDIA_TYPES, Rendered
 
 #: problems of every route that runs the engine on an uploaded mesh
-MESH_PROBLEMS = (BAD_FORM, UNSUPPORTED_FORMAT, MALFORMED_MESH, DEGENERATE_MESH, TOO_LARGE, BUSY,
-                 TIMED_OUT, WORKER_FAILED, UNAUTHORIZED)
+MESH_PROBLEMS = (BAD_FORM, UNSUPPORTED_FORMAT, NOT_MULTIPART, MALFORMED_MESH, DEGENERATE_MESH, TOO_LARGE,
+                 BUSY, TIMED_OUT, WORKER_FAILED, UNAUTHORIZED)
 
 
 def as_response(result: Rendered) -> Response:

@@ -56,6 +56,8 @@ def detect_format(data: bytes, filename: str | None = None) -> str:
     Raises :class:`UnsupportedFormatError` when no format matches, or when the content contradicts
     a known mesh extension.
     """
+    if not data:
+        raise UnsupportedFormatError("the file is empty (0 bytes): nothing to read")
     found = next((spec for spec in _SNIFF_ORDER if spec.sniff(data, spec.name)), None)
     ext = filename.rsplit(".", 1)[-1].lower() if filename and "." in filename else None
     named = _BY_EXTENSION.get(ext or "")

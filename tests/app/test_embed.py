@@ -94,7 +94,7 @@ def test_bad_form_fields(client, sphere_obj, fields, fragment):
 
 
 def test_missing_mesh_and_both_key_sources(client, sphere_obj):
-    body = assert_problem(client.post("/v1/embed", data={"key": KEY}), 422, "bad-form")
+    body = assert_problem(client.post("/v1/embed", files={"key": (None, KEY)}), 422, "bad-form")
     assert body["errors"] == [{"loc": ["body", "mesh"], "msg": "Field required", "type": "missing"}]
     response = client.post("/v1/embed", files={"mesh": ("s.obj", sphere_obj)}, data={"key": KEY},
                            headers={"X-Watermark-Key": KEY})

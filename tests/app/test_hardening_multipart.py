@@ -88,7 +88,7 @@ def test_a_well_formed_raw_body_reaches_the_engine(client):
 
 
 @pytest.mark.parametrize(("body", "fragment"), [
-    (multipart(mesh_part(), mesh_part(b"v 1 1 1\n"), key_part()), "Too many files"),
+    (multipart(mesh_part(), mesh_part(b"v 1 1 1\n"), key_part()), "'mesh' is given more than once"),
     (multipart(mesh_part(), mesh_part(name="other"), key_part()), "Too many files"),
     (multipart(mesh_part(), key_part(b"a"), key_part()), "'key' is given more than once"),
     (multipart(mesh_part(), key_part(), part("method", b"planes"), part("method", b"ellipsoids")),
@@ -129,17 +129,43 @@ def test_fields_a_route_does_not_read_may_repeat(client):
     ("multipart/form-data", multipart(mesh_part(), key_part())),  # no boundary
     ("multipart/form-data; boundary=", multipart(mesh_part(), key_part())),
     ("multipart/form-data; boundary=other", multipart(mesh_part(), key_part())),
+], ids=["no-boundary", "empty-boundary", "wrong-boundary"])
+def test_broken_multipart(client, content_type, body):
+    refused(send(client, body, content_type=content_type), 422)
+
+
+@pytest.mark.parametrize(("content_type", "body"), [
     ("multipart/mixed; boundary=" + BOUNDARY, multipart(mesh_part(), key_part())),
     ("application/x-www-form-urlencoded", b"&".join(b"f%d=x" % i for i in range(2000))),
     ("application/x-www-form-urlencoded", b"key=" + b"k" * 2_000_000),
     ("application/x-www-form-urlencoded", b"key=a&key=b"),
     ("application/json", b'{"key": "' + CANARY_KEY.encode() + b'", "mesh": "v 0 0 0"}'),
     ("text/plain", MESH),
+    ("application/octet-stream", MESH),
     (None, MESH),
-], ids=["no-boundary", "empty-boundary", "wrong-boundary", "multipart-mixed", "urlencoded-2000-fields",
-        "urlencoded-2MB-field", "urlencoded-two-keys", "json", "text", "no-content-type"])
-def test_wrong_or_broken_content_types(client, content_type, body):
-    refused(send(client, body, content_type=content_type), 422)
+], ids=["multipart-mixed", "urlencoded-2000-fields", "urlencoded-2MB-field", "urlencoded-two-keys", "json",
+        "text", "raw-bytes", "no-content-type"])
+def test_a_body_that_is_not_a_form_gets_415_and_what_to_send(client, content_type, body):
+    """Not a 'key is required' for a body that is no form at all: 415 and the shape to send."""
+    detail = refused(send(client, body, content_type=content_type), 415, "not-multipart")["detail"]
+    assert "file part named 'mesh'" in detail and "-F mesh=@" in detail
+    assert (content_type or "without Content-Type").split(";")[0] in detail
+
+
+def test_mesh_sent_as_text_says_to_send_a_file(client):
+    """``curl -F mesh=spot.obj`` (no @) sends the path as text: the answer says to add the @."""
+    detail = refused(send(client, multipart(part("mesh", b"spot.obj"), key_part())), 422)["detail"]
+    assert "'mesh' is text, not a file" in detail and "-F mesh=@" in detail
+
+
+def test_an_empty_file_is_called_empty(client):
+    detail = refused(send(client, multipart(mesh_part(b""), key_part())), 415, "unsupported-format")["detail"]
+    assert detail.startswith("the file is empty")
+
+
+def test_a_part_header_over_4_kib_is_refused(client):
+    body = multipart(part("mesh", MESH, filename="m" * 9000 + ".obj"), key_part())
+    assert "Maximum header size exceeded" in refused(send(client, body), 422)["detail"]
 
 
 def test_chunked_upload_beyond_the_limit_in_process():

@@ -86,6 +86,11 @@ def test_too_little_capacity_is_a_clear_error() -> None:
     with pytest.raises(CapacityError) as err:
         embed_mesh(v, f, "k", payload="1" * 256)
     assert err.value.needed > err.value.carriers
+    assert "use a shorter payload" in str(err.value)  # what to change, not only what failed
+    tiny = irregular_sphere(60, 2)
+    with pytest.raises(CapacityError) as err:
+        embed_mesh(*tiny, "k")  # the key-derived code: no shorter payload exists
+    assert "a mesh with more vertices" in str(err.value) and "shorter" not in str(err.value)
 
 
 @pytest.mark.parametrize(
