@@ -1,31 +1,40 @@
-"""``meshmark``: embed, detect and measure capacity on local files, serve the HTTP API, or run a
-worker of the Redis jobs backend.
+"""``meshmark``: embed, detect and measure capacity on local files (here, or on a MeshMark server
+with ``--server URL``), serve the HTTP API, or run a worker of the Redis jobs backend.
+
+A mesh argument may be ``-``: standard input, or for the output standard output (the report then
+goes to standard error).
 
 Exit codes: 0 success (detect: watermark found), 1 detect ran but found no watermark,
-2 usage or input error (bad arguments, unreadable file, malformed mesh...), 3 internal error.
+2 usage or input error (bad arguments, unreadable file, malformed mesh, a refusal of the server),
+3 internal error, 4 the server could not be reached or kept failing (5xx, 429 after the retries).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import logging
 import os
+import socket
 import sys
 import traceback
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any, BinaryIO, NoReturn
 
 from app.workers.process import one_blas_thread
 from core import api
 from core.allocator import tune_malloc
 from core.errors import MeshMarkError
-from core.formats import FORMATS
+from core.formats import FORMATS, detect_format
 from core.options import check_key
+from meshmark import __version__
 
-EXIT_OK, EXIT_NOT_DETECTED, EXIT_USAGE, EXIT_INTERNAL = 0, 1, 2, 3
+EXIT_OK, EXIT_NOT_DETECTED, EXIT_USAGE, EXIT_INTERNAL, EXIT_SERVER = 0, 1, 2, 3, 4
 KEY_ENV = "MESHMARK_KEY"
+SERVER_ENV = "MESHMARK_SERVER"
+API_KEY_ENV = "MESHMARK_API_KEY"
+#: a mesh argument that means standard input (or output)
+STDIO = "-"
 
 
 class _UsageError(Exception):
@@ -68,90 +77,178 @@ def _read_key(args: argparse.Namespace) -> str:
 
 
 def _read_mesh(path: str) -> bytes:
+    if path == STDIO:
+        return sys.stdin.buffer.read()
     try:
         return Path(path).read_bytes()
     except OSError as exc:
         raise _UsageError(f"cannot read {path}: {exc.strerror}") from None
 
 
-def _print_json(value: dict[str, Any]) -> None:
+def _name(path: str) -> str | None:
+    """The file name the engine cross-checks the content with (none for standard input)."""
+    return None if path == STDIO else Path(path).name
+
+
+def _check_output(data: bytes, args: argparse.Namespace) -> None:
+    """The marked file keeps the input's format: an output named for another format is refused
+    before any work (PLY bytes in a file called .obj would mislead every program that opens it)."""
+    if args.output == STDIO:
+        return
+    spec = FORMATS[detect_format(data, _name(args.input))]
+    suffix = Path(args.output).suffix.lower().removeprefix(".")
+    if suffix not in spec.extensions:
+        wanted = " or ".join(f".{ext}" for ext in spec.extensions)
+        raise _UsageError(f"the marked file is {spec.label}, like the input: name the output {wanted}, "
+                          f"not '{Path(args.output).name}' (MeshMark does not convert formats)")
+
+
+def _print_json(value: dict[str, Any], stream: Any = None) -> None:
+    stream = stream or sys.stdout
     try:
-        print(json.dumps(value, separators=(",", ":"), allow_nan=False), flush=True)
+        print(json.dumps(value, separators=(",", ":"), allow_nan=False), file=stream, flush=True)
     except BrokenPipeError:  # the reader went away (`| head`); the exit code still tells the outcome
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        os.dup2(os.open(os.devnull, os.O_WRONLY), stream.fileno())
+
+
+def _write_output(path: str, data: bytes) -> None:
+    if path == STDIO:
+        sys.stdout.buffer.write(data)
+        sys.stdout.buffer.flush()
+        return
+    try:
+        Path(path).write_bytes(data)
+    except OSError as exc:
+        raise _UsageError(f"cannot write {path}: {exc.strerror}") from None
+
+
+def _report_stream(args: argparse.Namespace) -> Any:
+    """The report goes to standard output, unless the mesh does."""
+    return sys.stderr if args.output == STDIO else sys.stdout
 
 
 def _embed(args: argparse.Namespace) -> int:
-    tune_malloc()
     key = _read_key(args)
     data = _read_mesh(args.input)
     options = api.Options(key=key, payload=args.payload, method=args.method, strength=args.strength)
-    embedded = api.embed(data, options, filename=Path(args.input).name, progress=_progress_bar("embedding"))
-    try:
-        Path(args.output).write_bytes(embedded.data)
-    except OSError as exc:
-        raise _UsageError(f"cannot write {args.output}: {exc.strerror}") from None
-    _print_json(embedded.report.to_dict())
+    _check_output(data, args)
+    if args.server:
+        return _remote(args, lambda mm: _remote_embed(mm, args, data, key))
+    tune_malloc()
+    embedded = api.embed(data, options, filename=_name(args.input), progress=_progress_bar("embedding"))
+    _write_output(args.output, embedded.data)
+    _print_json(embedded.report.to_dict(), _report_stream(args))
+    return EXIT_OK
+
+
+def _remote_embed(mm: Any, args: argparse.Namespace, data: bytes, key: str) -> int:
+    output: str | BinaryIO = sys.stdout.buffer if args.output == STDIO else args.output
+    report = mm.embed(data, output, key=key, payload=args.payload, method=args.method,
+                      strength=args.strength, filename=_name(args.input) or "mesh",
+                      progress=_progress_bar("embedding"))
+    _print_json(report, _report_stream(args))
     return EXIT_OK
 
 
 def _detect(args: argparse.Namespace) -> int:
-    tune_malloc()
     key = _read_key(args)
     data = _read_mesh(args.input)
     options = api.Options(key=key, payload=args.payload, method=args.method)
-    result = api.detect(data, options, filename=Path(args.input).name, progress=_progress_bar("detecting"))
-    _print_json(result.to_dict())
-    return EXIT_OK if result.detected else EXIT_NOT_DETECTED
+    if args.server:
+        found: dict[str, Any] = _remote(args, lambda mm: mm.detect(
+            data, key=key, payload=args.payload, method=args.method, filename=_name(args.input) or "mesh",
+            progress=_progress_bar("detecting")))
+    else:
+        tune_malloc()
+        found = api.detect(data, options, filename=_name(args.input),
+                           progress=_progress_bar("detecting")).to_dict()
+    _print_json(found)
+    return EXIT_OK if found["detected"] else EXIT_NOT_DETECTED
 
 
 def _capacity(args: argparse.Namespace) -> int:
-    tune_malloc()
     data = _read_mesh(args.input)
     options = api.Options(method=args.method, strength=args.strength)
-    report = api.capacity(data, options, filename=Path(args.input).name)
-    _print_json(report.to_dict())
+    if args.server:
+        report: dict[str, Any] = _remote(args, lambda mm: mm.capacity(
+            data, method=args.method, strength=args.strength, filename=_name(args.input) or "mesh"))
+    else:
+        tune_malloc()
+        report = api.capacity(data, options, filename=_name(args.input)).to_dict()
+    _print_json(report)
     return EXIT_OK
+
+
+def _remote(args: argparse.Namespace, work: Any) -> Any:
+    """``work(client)`` against ``--server``; the server's refusals become CLI errors."""
+    import httpx
+
+    from meshmark.client import Client, ProblemError
+
+    try:
+        with Client(args.server, api_key=os.environ.get(API_KEY_ENV) or None) as mm:
+            return work(mm)
+    except ProblemError as exc:
+        if 400 <= exc.status < 500 and exc.status != 429:
+            raise _UsageError(str(exc)) from None
+        _fail(EXIT_SERVER, f"the server failed: {exc}")
+    except httpx.TransportError as exc:
+        _fail(EXIT_SERVER, f"cannot reach {args.server}: {exc}")
+
+
+def _settings(**overrides: Any) -> Any:
+    """The service settings, flags over ``MESHMARK_*`` variables; an invalid one is a usage error."""
+    from pydantic import ValidationError
+
+    from app.config import Settings
+
+    try:
+        return Settings(**{k: v for k, v in overrides.items() if v is not None})
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise _UsageError(f"invalid settings: {problems}") from None
+
+
+def _listen(host: str, port: int) -> socket.socket:
+    """The server's listening socket, bound here so that an address in use is a clear usage error
+    rather than uvicorn's exit deep inside its start-up."""
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+        sock = socket.socket(family, kind, proto)
+    except OSError as exc:
+        raise _UsageError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+    except OSError as exc:
+        sock.close()
+        hint = " (another server is running there? choose one with --port)" if exc.errno == 98 else ""
+        raise _UsageError(f"cannot listen on {host}:{port}: {exc.strerror}{hint}") from None
+    sock.set_inheritable(True)
+    return sock
 
 
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
-    from pydantic import ValidationError
 
-    from app.config import Settings
-
-    overrides = {k: v for k, v in (("host", args.host), ("port", args.port), ("workers", args.workers))
-                 if v is not None}
-    try:
-        settings = Settings(**overrides)  # flags win over MESHMARK_* variables
-    except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        raise _UsageError(f"invalid settings: {problems}") from None
-
+    from app.logs import configure_logging
     from app.main import create_app
 
-    logging.basicConfig(level=settings.log_level.upper(),
-                        format="%(asctime)s %(levelname)s %(name)s %(message)s")
-    # access lines come from app.middleware (with the route and the duration), not uvicorn
+    settings = _settings(host=args.host, port=args.port, workers=args.workers)
+    configure_logging(settings.log_level, settings.log_format)
+    sock = _listen(settings.host, settings.port)
     # httptools and uvloop (dependencies) rather than uvicorn's pure-Python fallbacks: under
-    # overload the API process spends its time reading uploads it refuses
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=settings.log_level,
-                access_log=False, http="httptools", loop="uvloop")
+    # overload the API process spends its time reading uploads it refuses.  Access lines come
+    # from app.middleware (with the route, the problem type and the request id), not uvicorn;
+    # log_config=None keeps uvicorn's own lines in the one stream configure_logging set up.
+    config = uvicorn.Config(create_app(settings), log_level=settings.log_level, access_log=False,
+                            log_config=None, http="httptools", loop="uvloop")
+    uvicorn.Server(config).run(sockets=[sock])
     return EXIT_OK
 
 
 def _worker(args: argparse.Namespace) -> int:
-    from pydantic import ValidationError
-
-    from app.config import Settings
-
-    overrides = {k: v for k, v in (("worker_concurrency", args.concurrency), ("jobs_queue", args.queue))
-                 if v is not None}
-    try:
-        settings = Settings(**overrides)
-    except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        raise _UsageError(f"invalid settings: {problems}") from None
+    settings = _settings(worker_concurrency=args.concurrency, jobs_queue=args.queue)
     try:
         from app.redis_jobs.celery_app import run_worker
     except ImportError as exc:
@@ -168,6 +265,7 @@ def _worker(args: argparse.Namespace) -> int:
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="meshmark", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     def key_options(p: argparse.ArgumentParser) -> None:
@@ -179,26 +277,37 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--method", choices=api.METHODS, default=default,
                        help=f"embedding method (default: {default or 'try both'})")
 
+    def server_option(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--server", metavar="URL", default=os.environ.get(SERVER_ENV) or None,
+                       help=f"do the work on this MeshMark server (default: ${SERVER_ENV}; API key from "
+                       f"${API_KEY_ENV})")
+
+    mesh_help = f"mesh file ({', '.join(spec.label for spec in FORMATS.values())}), or - for standard input"
+
     p = sub.add_parser("embed", help="watermark a mesh file")
-    p.add_argument("input", help=f"mesh file ({', '.join(spec.label for spec in FORMATS.values())})")
-    p.add_argument("output", help="where to write the watermarked mesh (same format)")
+    p.add_argument("input", help=mesh_help)
+    p.add_argument("output", help="where to write the watermarked mesh (same format and extension), or - "
+                   "for standard output (the report then goes to standard error)")
     key_options(p)
     p.add_argument("--payload", help="bitstring of 1-256 '0'/'1' (default: 32 bits derived from the key)")
     method_option(p, api.DEFAULT_METHOD)
     p.add_argument("--strength", type=float, help="boundary margin, > 0 (engine default if omitted)")
+    server_option(p)
     p.set_defaults(run=_embed)
 
     p = sub.add_parser("detect", help="look for a watermark (exit 1 when none is found)")
-    p.add_argument("input", help="mesh file")
+    p.add_argument("input", help=mesh_help)
     key_options(p)
     p.add_argument("--payload", help="expected payload, to get bit errors and a p-value")
     method_option(p, None)
+    server_option(p)
     p.set_defaults(run=_detect)
 
     p = sub.add_parser("capacity", help="carriers and payload room of a mesh")
-    p.add_argument("input", help="mesh file")
+    p.add_argument("input", help=mesh_help)
     method_option(p, api.DEFAULT_METHOD)
     p.add_argument("--strength", type=float, help="boundary margin, > 0")
+    server_option(p)
     p.set_defaults(run=_capacity)
 
     p = sub.add_parser("serve", help="run the HTTP API (settings from MESHMARK_* variables)")

@@ -27,7 +27,8 @@ class Settings(BaseSettings):
 
     host: str = "127.0.0.1"
     port: int = Field(default=8000, ge=0, le=65535)
-    log_level: str = "info"
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+    log_format: Literal["text", "json"] = "text"  # json: one JSON object per line
 
     # worker processes doing the mesh work
     workers: int = Field(default=2, ge=1)
@@ -58,6 +59,11 @@ class Settings(BaseSettings):
     # the key fingerprints in logs (None = random per process)
     api_keys: Annotated[list[SecretStr], NoDecode] = Field(default_factory=list)
     log_fingerprint_secret: SecretStr | None = None
+
+    @field_validator("log_level", "log_format", mode="before")
+    @classmethod
+    def _lower(cls, value: object) -> object:
+        return value.strip().lower() if isinstance(value, str) else value
 
     @field_validator("api_keys", mode="before")
     @classmethod

@@ -24,6 +24,7 @@ from app.deps import SettingsDep, WatermarkKey
 from app.inputs import PAYLOAD_SCHEMA, STRENGTH_SCHEMA
 from app.multipart import FormError, FormParser
 from app.problems import BAD_FORM, NOT_MULTIPART, ProblemError, problem_response
+from app.request_id import current_request_id
 from app.workers.tasks import Task
 from core.coding import MAX_PAYLOAD_BITS
 from core.errors import PayloadError
@@ -174,7 +175,8 @@ async def embed_task(
 ) -> Task:
     data = await mesh.read()
     options = _options(key=key, payload=payload, method=method, strength=strength)
-    return Task("embed", data, options, filename=mesh.filename, limits=settings.limits())
+    return Task("embed", data, options, filename=mesh.filename, limits=settings.limits(),
+                request_id=current_request_id())
 
 
 async def detect_task(
@@ -187,7 +189,8 @@ async def detect_task(
 ) -> Task:
     data = await mesh.read()
     options = _options(key=key, payload=payload, method=method)
-    return Task("detect", data, options, filename=mesh.filename, limits=settings.limits())
+    return Task("detect", data, options, filename=mesh.filename, limits=settings.limits(),
+                request_id=current_request_id())
 
 
 async def capacity_task(
@@ -198,7 +201,8 @@ async def capacity_task(
 ) -> Task:
     data = await mesh.read()
     options = _options(method=method, strength=strength)
-    return Task("capacity", data, options, filename=mesh.filename, limits=settings.limits())
+    return Task("capacity", data, options, filename=mesh.filename, limits=settings.limits(),
+                request_id=current_request_id())
 
 
 async def preview_task(settings: SettingsDep, mesh: MeshFile, original: OriginalFile = None) -> Task:

@@ -10,6 +10,7 @@ from contextlib import asynccontextmanager
 from typing import Any
 
 from fastapi import Depends, FastAPI
+from fastapi_offline import FastAPIOffline
 
 from app.config import Settings
 from app.deps import require_caller
@@ -21,6 +22,7 @@ from app.problems import BAD_FORM, Problem, install_problem_handlers, problem_re
 from app.routes import V1_ROUTERS, health
 from app.web import router as web_router
 from app.workers.pool import WorkerPool
+from meshmark import __version__
 
 log = logging.getLogger("meshmark.app")
 
@@ -99,7 +101,8 @@ def _document(schema: dict[str, Any]) -> dict[str, Any]:
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
-    app = FastAPI(title="MeshMark", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
+    # /docs and /redoc from assets shipped in the fastapi-offline package: they work offline
+    app = FastAPIOffline(title="MeshMark", version=__version__, description=DESCRIPTION, lifespan=lifespan)
     app.state.settings = settings
     secret = settings.log_fingerprint_secret
     app.state.fingerprint_secret = (secret.get_secret_value().encode() if secret is not None

@@ -75,7 +75,7 @@ class LocalJobRunner:
     async def submit(self, task: Task) -> Job:
         """Create a job for ``task``; raises a ``busy`` problem when the pool or the store is full."""
         await check_room(self.store, self.max_jobs, self.pool.retry_after())
-        job = Job(id=uuid.uuid4().hex, kind=task.kind)
+        job = Job(id=uuid.uuid4().hex, kind=task.kind, request_id=task.request_id)
         await self.store.add(job)
         try:
             work = self.pool.submit(task, task_id=job.id, on_progress=lambda f: self._progress(job.id, f))

@@ -1,4 +1,5 @@
-"""Pure ASGI middleware: the request-body cap and the per-request metrics and log line."""
+"""Pure ASGI middleware: the request-body cap, and the request id, metrics and log line of each
+request."""
 
 from __future__ import annotations
 
@@ -6,11 +7,12 @@ import json
 import logging
 import time
 
-from starlette.datastructures import Headers
+from starlette.datastructures import Headers, MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.metrics import Metrics
-from app.problems import PROBLEM_MEDIA_TYPE, TOO_LARGE, ProblemError
+from app.problems import PROBLEM_BASE, PROBLEM_MEDIA_TYPE, TOO_LARGE, ProblemError
+from app.request_id import REQUEST_ID_HEADER, request_id_from, set_request_id
 
 log = logging.getLogger("meshmark.access")
 
@@ -69,11 +71,14 @@ class BodyLimitMiddleware:
 
 
 class MetricsMiddleware:
-    """Counts requests by route template and status, times them, and logs one line each (the
-    route template, not the path: no job ids in metric labels, nothing from the query string).
+    """Gives each request its id, counts requests by route template and status, times them, and
+    logs one access line each: route template (not the path: no job ids in metric labels, nothing
+    from the query string), status, the problem type of an error answer, duration.
 
-    The time is until the last byte of the answer was handed to the server: work after it (a
-    refused upload read and dropped in the background, see :mod:`app.forms`) does not count."""
+    The id is the caller's ``X-Request-ID`` when it is a sane token, else a new one; it is answered
+    in ``X-Request-ID`` and set for everything the request does (:mod:`app.logs`).  The time is
+    until the last byte of the answer was handed to the server: work after it (a refused upload
+    read and dropped in the background, see :mod:`app.forms`) does not count."""
 
     def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
         self.app, self.metrics = app, metrics
@@ -83,24 +88,45 @@ class MetricsMiddleware:
             await self.app(scope, receive, send)
             return
         start = time.perf_counter()
+        request_id = request_id_from(Headers(scope=scope).get(REQUEST_ID_HEADER))
+        set_request_id(request_id)
         status = 500
         answered: float | None = None
+        problem: bytearray | None = None
 
         async def recording_send(message: Message) -> None:
-            nonlocal status, answered
+            nonlocal status, answered, problem
             if message["type"] == "http.response.start":
                 status = message["status"]
+                headers = MutableHeaders(scope=message)
+                headers[REQUEST_ID_HEADER] = request_id
+                if headers.get("content-type") == PROBLEM_MEDIA_TYPE:
+                    problem = bytearray()
+            elif message["type"] == "http.response.body" and problem is not None and len(problem) < 65536:
+                problem += message.get("body", b"")
             await send(message)
             if message["type"] == "http.response.body" and not message.get("more_body", False):
                 answered = time.perf_counter()
 
-        self.metrics.in_progress += 1
+        self.metrics.in_progress.inc()
         try:
             await self.app(scope, receive, recording_send)
         finally:
-            self.metrics.in_progress -= 1
+            self.metrics.in_progress.dec()
             elapsed = (time.perf_counter() if answered is None else answered) - start
             route = getattr(scope.get("route"), "path", None) or "unmatched"
             self.metrics.observe_request(scope["method"], route, status, elapsed)
             client = scope.get("client") or ("-", 0)
-            log.info("%s %s %s %d %.1f ms", client[0], scope["method"], route, status, elapsed * 1000)
+            log.info("%s %s %s %d %s %.1f ms", client[0], scope["method"], route, status,
+                     _problem_slug(problem), elapsed * 1000)
+
+
+def _problem_slug(body: bytearray | None) -> str:
+    """The problem type of an error answer, as its slug (``busy``), ``-`` for other answers."""
+    if body is None:
+        return "-"
+    try:
+        kind = str(json.loads(body).get("type", "about:blank"))
+    except (ValueError, AttributeError):
+        return "-"
+    return kind.removeprefix(PROBLEM_BASE)

@@ -33,6 +33,7 @@ class Job:
     finished: float | None = None
     expires: float | None = None
     error: dict[str, Any] | None = None
+    request_id: str | None = None
     result: Rendered | None = field(default=None, repr=False)
 
     @property

@@ -30,9 +30,10 @@ from typing import Any
 import redis
 from celery import Celery, Task
 from celery.exceptions import Reject, TimeLimitExceeded
-from celery.signals import worker_process_init
+from celery.signals import after_setup_logger, after_setup_task_logger, worker_process_init
 
 from app.config import Settings
+from app.logs import decorate
 from app.redis_jobs.blobs import LocalBlobStore
 from app.redis_jobs.store import JobRecords, input_key
 from app.redis_jobs.worker import execute_job
@@ -148,6 +149,14 @@ def run_worker(settings: Settings, *, concurrency: int | None = None, loglevel: 
     celery = make_celery(settings)
     memory_mb = settings.worker_memory_mb
     worker_process_init.connect(lambda **_: init_engine_process(memory_mb), weak=False)
+
+    def one_stream(logger: logging.Logger, **_: Any) -> None:
+        """Celery's handlers, with the request id of the job and the service's log format."""
+        for handler in logger.handlers:
+            decorate(handler, settings.log_format)
+
+    after_setup_logger.connect(one_stream, weak=False)
+    after_setup_task_logger.connect(one_stream, weak=False)
     processes = concurrency or settings.worker_concurrency or os.cpu_count() or 1
     celery.worker_main([
         "worker", "--loglevel", (loglevel or settings.log_level).upper(), "--concurrency", str(processes),

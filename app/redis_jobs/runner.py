@@ -45,7 +45,7 @@ class CeleryJobRunner:
     async def submit(self, task: Task) -> Job:
         """Queue a job for ``task``; ``busy`` when the store is full, ``not-ready`` without Redis."""
         await check_room(self.store, self.max_jobs, retry_after=5)
-        job = Job(id=uuid.uuid4().hex, kind=task.kind)
+        job = Job(id=uuid.uuid4().hex, kind=task.kind, request_id=task.request_id)
         await asyncio.to_thread(self.blobs.put, input_key(job.id), encode_input(task))
         try:
             await self.store.add(job)

@@ -27,6 +27,7 @@ import redis
 from app.problems import INTERNAL, ProblemError
 from app.redis_jobs.blobs import BlobNotFound, BlobStore
 from app.redis_jobs.store import JobRecords, input_key, result_key
+from app.request_id import set_request_id
 from app.results import Rendered
 from app.workers import failures
 from app.workers.tasks import Task, ThrottledProgress
@@ -44,7 +45,7 @@ def encode_input(task: Task) -> bytes:
     """The input blob: the kind, file name, options and limits as one line of JSON, then the mesh
     bytes as they were uploaded."""
     header = {"kind": task.kind, "filename": task.filename, "options": asdict(task.options),
-              "limits": asdict(task.limits)}
+              "limits": asdict(task.limits), "request_id": task.request_id}
     return json.dumps(header, separators=(",", ":")).encode() + b"\n" + task.data
 
 
@@ -52,7 +53,8 @@ def decode_input(blob: bytes) -> Task:
     header, _, data = blob.partition(b"\n")
     fields: dict[str, Any] = json.loads(header)
     return Task(kind=fields["kind"], data=data, options=Options(**fields["options"]),
-                filename=fields["filename"], limits=Limits(**fields["limits"]))
+                filename=fields["filename"], limits=Limits(**fields["limits"]),
+                request_id=fields.get("request_id"))
 
 
 class _Progress(ThrottledProgress):
@@ -78,6 +80,7 @@ def _run(records: JobRecords, blobs: BlobStore, job_id: str, *, timeout: float,
     try:
         try:
             task = decode_input(blobs.get(input_key(job_id)))
+            set_request_id(task.request_id)
         except BlobNotFound:
             log.error("job %s: input blob missing from the blob store", job_id)
             missing = ProblemError(INTERNAL, "the job's upload is missing from the blob store")

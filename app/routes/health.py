@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
-from fastapi.responses import PlainTextResponse
+from fastapi import APIRouter, Request, Response
+from prometheus_client import CONTENT_TYPE_LATEST
 
 from app.problems import NOT_READY, ProblemError, problem_responses
 from app.workers.pool import WorkerPool
@@ -31,14 +31,14 @@ async def readyz(request: Request) -> dict[str, int | str]:
             "running": pool.running, **jobs}
 
 
-@router.get("/metrics", summary="Prometheus metrics", response_class=PlainTextResponse,
-            responses={200: {"content": {"text/plain; version=0.0.4": {}}}})
-async def metrics(request: Request) -> PlainTextResponse:
+@router.get("/metrics", summary="Prometheus metrics", response_class=Response,
+            responses={200: {"content": {CONTENT_TYPE_LATEST: {"schema": {"type": "string"}}}}})
+async def metrics(request: Request) -> Response:
+    """Prometheus text exposition: requests, the worker pool, jobs, ``process_*`` and build info."""
     state = request.app.state
     runner = getattr(state, "runner", None)
     try:
         jobs = await runner.store.count() if runner is not None else {}
     except ProblemError:  # the job store is unreachable: the other figures still count
         jobs = {}
-    text = state.metrics.render(getattr(state, "pool", None), jobs)
-    return PlainTextResponse(text, media_type="text/plain; version=0.0.4; charset=utf-8")
+    return Response(state.metrics.render(getattr(state, "pool", None), jobs), media_type=CONTENT_TYPE_LATEST)

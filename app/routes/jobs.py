@@ -45,6 +45,8 @@ class JobStatus(BaseModel):
     expires: datetime | None = Field(None, description="When the job and its result are forgotten "
                                      "(set when it finishes).")
     error: dict[str, Any] | None = Field(None, description="The problem, when the job failed.")
+    request_id: str | None = Field(None, description="`X-Request-ID` of the request that created the job "
+                                   "(the server's log lines of the job carry it).")
 
     @classmethod
     def of(cls, job: Job) -> JobStatus:
@@ -53,7 +55,8 @@ class JobStatus(BaseModel):
 
         return cls(id=job.id, kind=job.kind, state=job.state, progress=job.progress,
                    created=datetime.fromtimestamp(job.created, UTC), started=ts(job.started),
-                   finished=ts(job.finished), expires=ts(job.expires), error=job.error)
+                   finished=ts(job.finished), expires=ts(job.expires), error=job.error,
+                   request_id=job.request_id)
 
 
 def _accepted(job: Job, request: Request) -> JSONResponse:

@@ -29,9 +29,11 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any
 
+import psutil
 from pebble import ProcessExpired, ProcessPool
 
 from app.problems import WORKER_FAILED, ProblemError
+from app.request_id import set_request_id
 from app.workers import failures
 from app.workers.process import PRELOAD, init_engine_process, one_blas_thread
 from app.workers.tasks import Task, ThrottledProgress
@@ -62,17 +64,11 @@ def _mp_context() -> Any:
 
 
 def _alive(pid: int) -> bool:
+    """Running, not a zombie waiting for pebble to reap it."""
     try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            return f.read().rsplit(b")", 1)[1].split()[0] != b"Z"
-    except FileNotFoundError:
+        return bool(psutil.Process(pid).status() != psutil.STATUS_ZOMBIE)
+    except psutil.NoSuchProcess:
         return False
-    except OSError:
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return False
-        return True
 
 
 class WorkerPool:
@@ -340,6 +336,7 @@ class _Progress(ThrottledProgress):
 
 def _execute(task_id: str, task: Task) -> Any:
     """Run one task in the worker; the only function the pool schedules."""
+    set_request_id(task.request_id)
     _send("start", task_id, os.getpid())
     try:
         return task.run(_Progress(task_id))

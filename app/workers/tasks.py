@@ -31,6 +31,8 @@ class Task:
     #: preview: the file ``data`` was watermarked from, and its name
     original: bytes | None = None
     original_filename: str | None = None
+    #: the id of the request that asked for it (log lines, job status)
+    request_id: str | None = None
 
     @property
     def key(self) -> str | None:

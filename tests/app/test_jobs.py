@@ -6,7 +6,8 @@ import time
 
 from tests.app.conftest import KEY, assert_problem, detect, make_client, shared_mesh, wait_job
 
-STATUS_KEYS = {"id", "kind", "state", "progress", "created", "started", "finished", "expires", "error"}
+STATUS_KEYS = {"id", "kind", "state", "progress", "created", "started", "finished", "expires", "error",
+               "request_id"}
 
 
 def start_job(client, kind: str, name: str, data: bytes, key: str = KEY, **fields: str):

@@ -28,6 +28,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import psutil
 import pytest
 import redis
 from pydantic import ValidationError
@@ -214,8 +215,7 @@ def no_jobs(redis_env, records) -> None:
 
 
 def _ppid(pid: int) -> int:
-    with open(f"/proc/{pid}/stat", "rb") as f:
-        return int(f.read().rsplit(b")", 1)[1].split()[1])
+    return int(psutil.Process(pid).ppid())
 
 
 def _start(client, name: str, data: bytes, kind: str = "embed", **fields: str) -> str:
