@@ -232,9 +232,10 @@ def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from app.logs import configure_logging
-    from app.main import create_app
 
     settings = _settings(host=args.host, port=args.port, workers=args.workers)
+    from app.main import create_app  # after the settings are checked: the module makes a default app
+
     configure_logging(settings.log_level, settings.log_format)
     sock = _listen(settings.host, settings.port)
     # httptools and uvloop (dependencies) rather than uvicorn's pure-Python fallbacks: under

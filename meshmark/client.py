@@ -5,8 +5,9 @@ It does what a careful integrator would do by hand:
 
 * long work goes through the jobs API (``POST /v1/jobs/...``), followed to the end with a
   progress callback, then fetched and deleted, so no HTTP request stays open for minutes;
-* ``429 busy`` and ``503`` answers (and connection failures) are retried, waiting what
-  ``Retry-After`` says, at most ``retries`` times and never longer than ``max_wait`` each;
+* ``429 busy`` and ``503`` answers (and connections that break mid-request) are retried, waiting
+  what ``Retry-After`` says, at most ``retries`` times and never longer than ``max_wait`` each; a
+  server that cannot be connected to fails at once;
 * a watermarked mesh is streamed to disk and renamed into place when complete, never held whole
   in memory and never left half-written under its final name;
 * a refusal raises :class:`ProblemError` carrying the RFC 9457 problem (``title``, ``detail``,
@@ -182,7 +183,7 @@ class Client(_Base):
     api_key : str, optional
         One of the server's ``MESHMARK_API_KEYS``, sent as a bearer token.
     retries : int
-        Further tries of a request answered 429 or 503 (or not answered at all).
+        Further tries of a request answered 429 or 503, or whose connection broke.
     max_wait : float
         Longest wait between two tries, seconds, whatever ``Retry-After`` says.
     poll_interval : float
@@ -221,7 +222,9 @@ class Client(_Base):
                 else:
                     request = self.http.build_request(method, url, headers=headers)
                     response = self.http.send(request, stream=stream)
-            except httpx.TransportError:
+            except (httpx.ConnectError, httpx.ConnectTimeout):
+                raise  # nothing listens there: waiting would not help
+            except httpx.TransportError:  # the connection broke mid-way: a restart, a proxy
                 if attempt == self.retries:
                     raise
             if response is not None and response.status_code not in RETRY_STATUSES:
@@ -356,7 +359,9 @@ class AsyncClient(_Base):
             try:
                 request = self.http.build_request(method, url, files=files, data=data, headers=headers)
                 response = await self.http.send(request, stream=stream)
-            except httpx.TransportError:
+            except (httpx.ConnectError, httpx.ConnectTimeout):
+                raise  # nothing listens there: waiting would not help
+            except httpx.TransportError:  # the connection broke mid-way: a restart, a proxy
                 if attempt == self.retries:
                     raise
             if response is not None and response.status_code not in RETRY_STATUSES:

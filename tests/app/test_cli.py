@@ -1,13 +1,20 @@
-"""``meshmark`` embed / detect / capacity on files, with the documented exit codes."""
+"""``meshmark`` embed / detect / capacity on files and pipes, with the documented exit codes."""
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
+import os
+import socket
+import subprocess
+from typing import Any
 
 import pytest
 
+import meshmark
 from app.cli import EXIT_NOT_DETECTED, EXIT_OK, EXIT_USAGE, main
 from tests.app.conftest import KEY
+from tests.app.real_server import MESHMARK
 from tests.conftest import shared_mesh_path
 
 
@@ -75,3 +82,56 @@ def test_usage_errors_exit_2(capsys, spot):
     assert run(capsys, "frobnicate")[0] == EXIT_USAGE
     code, _, err = run(capsys, "serve", "--port", "99999")  # refused before anything starts
     assert code == EXIT_USAGE and "port" in err
+
+
+def test_version(capsys):
+    code, out, _ = run(capsys, "--version")
+    assert code == EXIT_OK and out.strip() == f"meshmark {meshmark.__version__}"
+    assert meshmark.__version__ == importlib.metadata.version("meshmark")
+
+
+def test_an_output_named_for_another_format_is_refused(capsys, tmp_path, spot):
+    """The marked file keeps the input's format: `embed x.obj out.ply` would write OBJ text into a
+    .ply file, so it is refused before any work, with the extension to use."""
+    out_path = tmp_path / "spot.marked.ply"
+    code, out, err = run(capsys, "embed", str(spot), str(out_path), "--key", KEY)
+    assert code == EXIT_USAGE and out == "" and not out_path.exists()
+    assert "name the output .obj" in err
+
+
+def _meshmark(*args: str, stdin: bytes = b"", env: dict[str, str] | None = None) -> Any:
+    return subprocess.run([str(MESHMARK), *args], input=stdin, capture_output=True, timeout=120,
+                          env={**os.environ, **(env or {})})
+
+
+def test_dash_reads_stdin_and_writes_stdout(tmp_path, spot):
+    """`meshmark embed - - < in > out`: the mesh through the pipes, the report on stderr; the bytes
+    are those of the same embedding written to a file."""
+    source = spot.read_bytes()
+    piped = _meshmark("embed", "-", "-", "--key", KEY, stdin=source)
+    assert piped.returncode == 0, piped.stderr
+    report = json.loads(piped.stderr.decode().strip().splitlines()[-1])
+    assert report["carriers"] > 0
+    on_disk = _meshmark("embed", str(spot), str(tmp_path / "m.obj"), "--key", KEY)
+    assert on_disk.returncode == 0 and json.loads(on_disk.stdout) == report
+    assert piped.stdout == (tmp_path / "m.obj").read_bytes() != source
+    found = _meshmark("detect", "-", "--key", KEY, stdin=piped.stdout)
+    assert found.returncode == EXIT_OK and json.loads(found.stdout)["detected"] is True
+    empty = _meshmark("detect", "-", "--key", KEY, stdin=b"")
+    assert empty.returncode == EXIT_USAGE and b"the file is empty" in empty.stderr
+
+
+def test_invalid_settings_are_usage_errors_without_traceback():
+    bad_level = _meshmark("serve", env={"MESHMARK_LOG_LEVEL": "loud"})
+    assert bad_level.returncode == EXIT_USAGE, bad_level.stderr
+    assert b"log_level" in bad_level.stderr and b"Traceback" not in bad_level.stderr
+
+
+def test_a_port_in_use_is_a_usage_error():
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        busy = _meshmark("serve", "--port", str(port))
+    assert busy.returncode == EXIT_USAGE, busy.stderr
+    assert f"cannot listen on 127.0.0.1:{port}".encode() in busy.stderr and b"Traceback" not in busy.stderr

@@ -35,7 +35,8 @@ def test_metrics_exposition(client, sphere_obj):
     assert response.headers["content-type"].startswith("text/plain; version=")
     # Prometheus's own parser reads it back (it raises on a malformed line)
     families = {f.name: f for f in text_string_to_metric_families(response.text)}
-    samples = {(s.name, tuple(sorted(s.labels.items()))): s.value for f in families.values() for s in f.samples}
+    samples = {(s.name, tuple(sorted(s.labels.items()))): s.value
+               for f in families.values() for s in f.samples}
 
     def value(name: str, **labels: str) -> float:
         return samples[(name, tuple(sorted(labels.items())))]
