@@ -9,7 +9,7 @@ import tempfile
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from core.formats.base import Limits
@@ -60,10 +60,30 @@ class Settings(BaseSettings):
     api_keys: Annotated[list[SecretStr], NoDecode] = Field(default_factory=list)
     log_fingerprint_secret: SecretStr | None = None
 
+    # job callbacks: the hosts a callback_url may name (comma-separated; empty = callbacks off) and
+    # the HMAC secret of their X-MeshMark-Signature (required when hosts are set)
+    callback_hosts: Annotated[list[str], NoDecode] = Field(default_factory=list)
+    callback_secret: SecretStr | None = None
+
     @field_validator("log_level", "log_format", mode="before")
     @classmethod
     def _lower(cls, value: object) -> object:
         return value.strip().lower() if isinstance(value, str) else value
+
+    @field_validator("callback_hosts", mode="before")
+    @classmethod
+    def _split_hosts(cls, value: object) -> object:
+        if isinstance(value, str):
+            return [h.strip().lower() for h in value.split(",") if h.strip()]
+        return value
+
+    @model_validator(mode="after")
+    def _callbacks_need_a_secret(self) -> Settings:
+        secret = self.callback_secret.get_secret_value() if self.callback_secret is not None else ""
+        if self.callback_hosts and not secret:
+            raise ValueError("MESHMARK_CALLBACK_SECRET is required when MESHMARK_CALLBACK_HOSTS is set "
+                             "(receivers check the signature with it)")
+        return self
 
     @field_validator("api_keys", mode="before")
     @classmethod

@@ -20,6 +20,7 @@ from starlette.background import BackgroundTask
 from starlette.datastructures import FormData
 from starlette.types import Receive
 
+from app.callbacks import CallbackRefused, check_url
 from app.deps import SettingsDep, WatermarkKey
 from app.inputs import PAYLOAD_SCHEMA, STRENGTH_SCHEMA
 from app.multipart import FormError, FormParser
@@ -210,10 +211,27 @@ async def preview_task(settings: SettingsDep, mesh: MeshFile, original: Original
     before = None if original is None else await original.read()
     return Task("preview", data, Options(), filename=mesh.filename, original=before,
                 original_filename=None if original is None else original.filename,
-                limits=settings.limits())
+                limits=settings.limits(), request_id=current_request_id())
+
+
+async def callback_url(
+    settings: SettingsDep,
+    callback_url: Annotated[str | None, Form(description="Where to POST the job's final status, signed "
+                                              "(`X-MeshMark-Signature`); its host must be one the server "
+                                              "allows (`MESHMARK_CALLBACK_HOSTS`, none by default).",
+                                              json_schema_extra={"format": "uri", "maxLength": 2048})] = None,
+) -> str | None:
+    """The job's callback URL, when it names an allowed host (``bad-form`` otherwise)."""
+    if not callback_url:
+        return None
+    try:
+        return check_url(callback_url[:2048], settings.callback_hosts)
+    except CallbackRefused as exc:
+        raise ProblemError(BAD_FORM, str(exc)) from None
 
 
 EmbedForm = Annotated[Task, Depends(embed_task)]
 DetectForm = Annotated[Task, Depends(detect_task)]
 CapacityForm = Annotated[Task, Depends(capacity_task)]
 PreviewForm = Annotated[Task, Depends(preview_task)]
+CallbackUrl = Annotated[str | None, Depends(callback_url)]

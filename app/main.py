@@ -34,6 +34,11 @@ Errors are RFC 9457 problem details (`application/problem+json`) whose `type` is
 or logged."""
 
 
+def callback_secret(settings: Settings) -> bytes:
+    secret = settings.callback_secret
+    return secret.get_secret_value().encode() if secret is not None else b""
+
+
 def make_runner(settings: Settings, pool: WorkerPool) -> Runner:
     """The jobs backend of ``settings.jobs_backend``: this process's pool (``memory``), or Celery
     workers through Redis (``redis``; imported only then, so that a single machine needs neither
@@ -43,7 +48,7 @@ def make_runner(settings: Settings, pool: WorkerPool) -> Runner:
 
         return CeleryJobRunner.from_settings(settings)
     return LocalJobRunner(InMemoryJobStore(), pool, ttl=settings.job_result_ttl_seconds,
-                          max_jobs=settings.max_stored_jobs)
+                          max_jobs=settings.max_stored_jobs, callback_secret=callback_secret(settings))
 
 
 @asynccontextmanager

@@ -13,6 +13,7 @@ import uuid
 from dataclasses import replace
 from typing import Any
 
+from app import callbacks
 from app.jobs import STATES, Job, check_room
 from app.problems import INTERNAL, ProblemError
 from app.results import Rendered
@@ -68,14 +69,16 @@ class InMemoryJobStore:
 class LocalJobRunner:
     """Admits a task into the worker pool, follows it, records the outcome in the store."""
 
-    def __init__(self, store: InMemoryJobStore, pool: WorkerPool, *, ttl: float, max_jobs: int) -> None:
+    def __init__(self, store: InMemoryJobStore, pool: WorkerPool, *, ttl: float, max_jobs: int,
+                 callback_secret: bytes = b"") -> None:
         self.store, self.pool, self.ttl, self.max_jobs = store, pool, ttl, max_jobs
+        self.callback_secret = callback_secret
         self._watchers: set[asyncio.Task[None]] = set()
 
-    async def submit(self, task: Task) -> Job:
+    async def submit(self, task: Task, callback_url: str | None = None) -> Job:
         """Create a job for ``task``; raises a ``busy`` problem when the pool or the store is full."""
         await check_room(self.store, self.max_jobs, self.pool.retry_after())
-        job = Job(id=uuid.uuid4().hex, kind=task.kind, request_id=task.request_id)
+        job = Job(id=uuid.uuid4().hex, kind=task.kind, request_id=task.request_id, callback_url=callback_url)
         await self.store.add(job)
         try:
             work = self.pool.submit(task, task_id=job.id, on_progress=lambda f: self._progress(job.id, f))
@@ -125,8 +128,10 @@ class LocalJobRunner:
         if job is None or job.done:
             return
         now = time.time()
-        await self.store.update(job_id, finished=now, expires=now + self.ttl, **changes)
+        finished = await self.store.update(job_id, finished=now, expires=now + self.ttl, **changes)
         log.info("job %s (%s) %s", job_id, job.kind, changes["state"])
+        if finished is not None and finished.callback_url:
+            self._watch(callbacks.deliver(finished, self.callback_secret))
 
     async def cancel(self, job_id: str) -> Job | None:
         """Stop an unfinished job (its record stays, state ``cancelled``, until it expires)."""
@@ -141,6 +146,7 @@ class LocalJobRunner:
         return {}  # the pool's own readiness is checked by /readyz
 
     async def close(self) -> None:
+        """Stops following jobs; callbacks still being retried are dropped (the process is ending)."""
         for watcher in list(self._watchers):
             watcher.cancel()
         await asyncio.gather(*self._watchers, return_exceptions=True)

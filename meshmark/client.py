@@ -165,6 +165,31 @@ class _Base:
         self._options: dict[str, Any] = {"base_url": base_url.rstrip("/"), "headers": headers,
                                          "timeout": httpx.Timeout(timeout, connect=10.0)}
 
+    def _broken(self, exc: httpx.TransportError, attempt: int) -> None:
+        """A connection that broke mid-way (a restart, a proxy) may be tried again; one that could
+        not be made is raised at once (nothing listens there: waiting would not help)."""
+        if isinstance(exc, httpx.ConnectError | httpx.ConnectTimeout) or attempt == self.retries:
+            raise exc
+
+    def _retry_or_raise(self, response: httpx.Response | None, attempt: int) -> float:
+        """Seconds to wait before trying again; raises the problem of a refusal (or of the last
+        try).  ``response`` is None when the connection broke."""
+        if response is not None and (response.status_code not in RETRY_STATUSES or attempt == self.retries):
+            raise ProblemError.from_response(response)
+        return _retry_delay(response, attempt, self.max_wait)
+
+    @staticmethod
+    def _settled(status: dict[str, Any]) -> dict[str, Any] | None:
+        """The status of a job that has finished well, None while it runs; raises its problem
+        when it failed or was cancelled."""
+        if status["state"] in ("queued", "running"):
+            return None
+        if status["state"] != "succeeded":
+            error = status.get("error") or {"status": 409, "title": "The job has no result",
+                                            "detail": f"the job was {status['state']}"}
+            raise ProblemError.from_problem(error, status.get("request_id"))
+        return status
+
     @staticmethod
     def _request_headers() -> dict[str, str]:
         """A request id of our own, so that the server's log lines and our errors can be matched."""
@@ -222,21 +247,13 @@ class Client(_Base):
                 else:
                     request = self.http.build_request(method, url, headers=headers)
                     response = self.http.send(request, stream=stream)
-            except (httpx.ConnectError, httpx.ConnectTimeout):
-                raise  # nothing listens there: waiting would not help
-            except httpx.TransportError:  # the connection broke mid-way: a restart, a proxy
-                if attempt == self.retries:
-                    raise
-            if response is not None and response.status_code not in RETRY_STATUSES:
+            except httpx.TransportError as exc:
+                self._broken(exc, attempt)
+            if response is not None:
                 if response.is_success:
                     return response
                 response.read()
-                raise ProblemError.from_response(response)
-            if response is not None:
-                response.read()
-                if attempt == self.retries:
-                    raise ProblemError.from_response(response)
-            time.sleep(_retry_delay(response, attempt, self.max_wait))
+            time.sleep(self._retry_or_raise(response, attempt))
         raise AssertionError("unreachable")
 
     # -- jobs ----------------------------------------------------------------------------------
@@ -258,14 +275,9 @@ class Client(_Base):
             status = self.status(job)
             if progress is not None:
                 progress(float(status["progress"]))
-            if status["state"] not in ("queued", "running"):
-                break
+            if (done := self._settled(status)) is not None:
+                return done
             time.sleep(self.poll_interval)
-        if status["state"] != "succeeded":
-            error = status.get("error") or {"status": 409, "title": "The job has no result",
-                                            "detail": f"the job was {status['state']}"}
-            raise ProblemError.from_problem(error, status.get("request_id"))
-        return status
 
     def download(self, job: str, output: MeshTarget | None = None) -> httpx.Response:
         """The result of a finished job; with ``output``, streamed there (the answer's body is then
@@ -359,21 +371,13 @@ class AsyncClient(_Base):
             try:
                 request = self.http.build_request(method, url, files=files, data=data, headers=headers)
                 response = await self.http.send(request, stream=stream)
-            except (httpx.ConnectError, httpx.ConnectTimeout):
-                raise  # nothing listens there: waiting would not help
-            except httpx.TransportError:  # the connection broke mid-way: a restart, a proxy
-                if attempt == self.retries:
-                    raise
-            if response is not None and response.status_code not in RETRY_STATUSES:
+            except httpx.TransportError as exc:
+                self._broken(exc, attempt)
+            if response is not None:
                 if response.is_success:
                     return response
                 await response.aread()
-                raise ProblemError.from_response(response)
-            if response is not None:
-                await response.aread()
-                if attempt == self.retries:
-                    raise ProblemError.from_response(response)
-            await asyncio.sleep(_retry_delay(response, attempt, self.max_wait))
+            await asyncio.sleep(self._retry_or_raise(response, attempt))
         raise AssertionError("unreachable")
 
     async def submit(self, kind: str, mesh: MeshSource, *, filename: str | None = None,
@@ -391,14 +395,9 @@ class AsyncClient(_Base):
             status = await self.status(job)
             if progress is not None:
                 progress(float(status["progress"]))
-            if status["state"] not in ("queued", "running"):
-                break
+            if (done := self._settled(status)) is not None:
+                return done
             await asyncio.sleep(self.poll_interval)
-        if status["state"] != "succeeded":
-            error = status.get("error") or {"status": 409, "title": "The job has no result",
-                                            "detail": f"the job was {status['state']}"}
-            raise ProblemError.from_problem(error, status.get("request_id"))
-        return status
 
     async def download(self, job: str, output: MeshTarget | None = None) -> httpx.Response:
         response = await self._send("GET", f"{job}/result", stream=output is not None)

@@ -2,6 +2,7 @@
 (the backends: :mod:`app.memory_jobs`, :mod:`app.redis_jobs`)."""
 
 from app.jobs.runner import Runner, check_room
+from app.jobs.status import JobStatus
 from app.jobs.store import FINISHED, STATES, Job, JobState, JobStore
 
-__all__ = ["FINISHED", "STATES", "Job", "JobState", "JobStore", "Runner", "check_room"]
+__all__ = ["FINISHED", "STATES", "Job", "JobState", "JobStatus", "JobStore", "Runner", "check_room"]

@@ -18,8 +18,9 @@ class Runner(Protocol):
     @property
     def store(self) -> JobStore: ...
 
-    async def submit(self, task: Task) -> Job:
-        """Create a job for ``task``; raises a problem (``busy``, ``not-ready``) when it cannot."""
+    async def submit(self, task: Task, callback_url: str | None = None) -> Job:
+        """Create a job for ``task``; raises a problem (``busy``, ``not-ready``) when it cannot.
+        ``callback_url`` (checked against the allowed hosts) receives the final status."""
 
     async def cancel(self, job_id: str) -> Job | None: ...
 

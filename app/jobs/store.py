@@ -34,6 +34,8 @@ class Job:
     expires: float | None = None
     error: dict[str, Any] | None = None
     request_id: str | None = None
+    #: where the final status is POSTed (see :mod:`app.callbacks`)
+    callback_url: str | None = None
     result: Rendered | None = field(default=None, repr=False)
 
     @property

@@ -27,15 +27,17 @@ import os
 import time
 from typing import Any
 
+import httpx
 import redis
 from celery import Celery, Task
 from celery.exceptions import Reject, TimeLimitExceeded
 from celery.signals import after_setup_logger, after_setup_task_logger, worker_process_init
 
+from app import callbacks
 from app.config import Settings
 from app.logs import decorate
 from app.redis_jobs.blobs import LocalBlobStore
-from app.redis_jobs.store import JobRecords, input_key
+from app.redis_jobs.store import JobRecords, input_key, job_from_hash
 from app.redis_jobs.worker import execute_job
 from app.workers import failures
 from app.workers.process import init_engine_process, preload
@@ -43,6 +45,7 @@ from app.workers.process import init_engine_process, preload
 log = logging.getLogger("meshmark.workers")
 
 TASK_NAME = "meshmark.run_job"
+CALLBACK_TASK = "meshmark.job_callback"
 
 #: seconds between the soft and the hard time limit, and between the hard limit and redelivery
 HARD_LIMIT_GRACE = 10
@@ -113,6 +116,7 @@ class JobTask(Task):  # type: ignore[misc]
             error = failures.timed_out(timeout)
             self.resources.records.finish(task_id, "failed", error=error.to_dict())
             self.resources.blobs.delete(input_key(task_id))
+            _callback_if_wanted(self.app, self.resources.records, task_id)
 
 
 def make_celery(settings: Settings) -> Celery:
@@ -125,9 +129,12 @@ def make_celery(settings: Settings) -> Celery:
     @celery.task(name=TASK_NAME, bind=True, base=base)  # type: ignore[misc]
     def run_job(self: JobTask, job_id: str) -> str:
         try:
-            return execute_job(self.resources.records, self.resources.blobs, job_id,
-                               worker=str(self.request.hostname or ""), pid=os.getpid(),
-                               timeout=settings.job_timeout_seconds, memory_mb=settings.worker_memory_mb)
+            outcome = execute_job(self.resources.records, self.resources.blobs, job_id,
+                                  worker=str(self.request.hostname or ""), pid=os.getpid(),
+                                  timeout=settings.job_timeout_seconds, memory_mb=settings.worker_memory_mb)
+            if outcome != "skipped":
+                _callback_if_wanted(celery, self.resources.records, job_id)
+            return outcome
         except (redis.ConnectionError, redis.TimeoutError) as exc:
             # the job's state could not be read or written: back to the queue (the attempt counter
             # still bounds the retries of a job that got as far as starting)
@@ -135,7 +142,35 @@ def make_celery(settings: Settings) -> Celery:
             time.sleep(1)
             raise Reject(str(exc), requeue=True) from None
 
+    secret = settings.callback_secret.get_secret_value().encode() if settings.callback_secret else b""
+
+    @celery.task(name=CALLBACK_TASK, bind=True, base=base, max_retries=len(callbacks.BACKOFF_SECONDS),
+                 acks_late=False)  # type: ignore[misc]
+    def job_callback(self: JobTask, job_id: str) -> str:
+        """One delivery attempt of a finished job's callback; Celery runs the next one after the
+        backoff (the job slot is not held while waiting)."""
+        fields = self.resources.records.fields(job_id)
+        if not fields or not fields.get("callback_url"):
+            return "gone"
+        job = job_from_hash(job_id, fields)
+        body, headers = callbacks.request(job, secret)
+        with httpx.Client(follow_redirects=False) as client:
+            outcome = callbacks.attempt(client, fields["callback_url"], body, headers)
+        if outcome is None:
+            if self.request.retries >= len(callbacks.BACKOFF_SECONDS):
+                log.error("job %s callback not delivered after %d attempts", job_id, self.request.retries + 1)
+                return "undelivered"
+            raise self.retry(countdown=callbacks.BACKOFF_SECONDS[self.request.retries])
+        log.info("job %s callback %s", job_id, "delivered" if outcome else "refused by the receiver")
+        return "delivered" if outcome else "refused"
+
     return celery
+
+
+def _callback_if_wanted(celery: Celery, records: JobRecords, job_id: str) -> None:
+    """Queue the callback of a job that has just finished, when its creator asked for one."""
+    if records.client.hget(records.keys.job(job_id), "callback_url"):
+        celery.send_task(CALLBACK_TASK, args=[job_id], queue=celery.conf.task_default_queue)
 
 
 def run_worker(settings: Settings, *, concurrency: int | None = None, loglevel: str | None = None) -> None:

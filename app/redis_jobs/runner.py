@@ -20,7 +20,7 @@ from app.config import Settings
 from app.jobs import Job, check_room
 from app.problems import NOT_READY, ProblemError
 from app.redis_jobs.blobs import BlobStore, LocalBlobStore
-from app.redis_jobs.celery_app import TASK_NAME, make_celery
+from app.redis_jobs.celery_app import CALLBACK_TASK, TASK_NAME, make_celery
 from app.redis_jobs.store import RedisJobStore, input_key, unreachable
 from app.redis_jobs.worker import encode_input
 from app.workers.tasks import Task
@@ -42,10 +42,10 @@ class CeleryJobRunner:
         return cls(store, make_celery(settings), blobs, queue=settings.jobs_queue,
                    max_jobs=settings.max_stored_jobs)
 
-    async def submit(self, task: Task) -> Job:
+    async def submit(self, task: Task, callback_url: str | None = None) -> Job:
         """Queue a job for ``task``; ``busy`` when the store is full, ``not-ready`` without Redis."""
         await check_room(self.store, self.max_jobs, retry_after=5)
-        job = Job(id=uuid.uuid4().hex, kind=task.kind, request_id=task.request_id)
+        job = Job(id=uuid.uuid4().hex, kind=task.kind, request_id=task.request_id, callback_url=callback_url)
         await asyncio.to_thread(self.blobs.put, input_key(job.id), encode_input(task))
         try:
             await self.store.add(job)
@@ -70,6 +70,8 @@ class CeleryJobRunner:
         if await self.store.finish(job_id, "cancelled"):
             log.info("job %s (%s) cancelled", job_id, job.kind)
             await asyncio.to_thread(self.blobs.delete, input_key(job_id))
+            if job.callback_url:
+                await asyncio.to_thread(self.celery.send_task, CALLBACK_TASK, args=[job_id], queue=self.queue)
             try:
                 await asyncio.to_thread(self.celery.control.revoke, job_id)
             except Exception as exc:  # the state is what counts: workers check it before running

@@ -145,7 +145,7 @@ def job_from_hash(job_id: str, fields: Mapping[str, str]) -> Job:
                started=_float(fields.get("started")), finished=_float(fields.get("finished")),
                expires=_float(fields.get("expires")),
                error=json.loads(fields["error"]) if fields.get("error") else None,
-               request_id=fields.get("request_id") or None)
+               request_id=fields.get("request_id") or None, callback_url=fields.get("callback_url") or None)
 
 
 def client_options() -> dict[str, Any]:
@@ -192,7 +192,8 @@ class RedisJobStore:
 
     async def add(self, job: Job) -> None:
         fields = {"kind": job.kind, "state": job.state, "progress": job.progress, "created": job.created,
-                  "ttl": self.ttl, "attempts": 0, "completions": 0, "request_id": job.request_id or ""}
+                  "ttl": self.ttl, "attempts": 0, "completions": 0, "request_id": job.request_id or "",
+                  "callback_url": job.callback_url or ""}
         async with self._redis():
             await (self.client.pipeline(transaction=True)
                    .hset(self.keys.job(job.id), mapping=fields)

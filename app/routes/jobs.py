@@ -7,16 +7,14 @@ jobs and their results are kept for ``job_result_ttl_seconds``, then forgotten (
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
-from typing import Any, Literal
+from typing import Any
 
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, Field
 
 from app.deps import RunnerDep, StoreDep
-from app.forms import DetectForm, EmbedForm, StrictFormRoute
-from app.jobs import Job, JobState, JobStore
+from app.forms import CallbackUrl, DetectForm, EmbedForm, StrictFormRoute
+from app.jobs import Job, JobStatus, JobStore
 from app.logs import log_task
 from app.problems import (
     JOB_FAILED,
@@ -29,34 +27,8 @@ from app.problems import (
     problem_responses,
 )
 from app.routes.common import MESH_PROBLEMS, as_response, embed_openapi_response
-from app.workers.tasks import JOB_KINDS
 
 router = APIRouter(route_class=StrictFormRoute, tags=["jobs"])
-
-
-class JobStatus(BaseModel):
-    id: str
-    kind: Literal[JOB_KINDS]  # type: ignore[valid-type]  # the job kinds of the task table
-    state: JobState
-    progress: float = Field(ge=0, le=1, description="Fraction done, relayed from the worker.")
-    created: datetime
-    started: datetime | None = None
-    finished: datetime | None = None
-    expires: datetime | None = Field(None, description="When the job and its result are forgotten "
-                                     "(set when it finishes).")
-    error: dict[str, Any] | None = Field(None, description="The problem, when the job failed.")
-    request_id: str | None = Field(None, description="`X-Request-ID` of the request that created the job "
-                                   "(the server's log lines of the job carry it).")
-
-    @classmethod
-    def of(cls, job: Job) -> JobStatus:
-        def ts(t: float | None) -> datetime | None:
-            return None if t is None else datetime.fromtimestamp(t, UTC)
-
-        return cls(id=job.id, kind=job.kind, state=job.state, progress=job.progress,
-                   created=datetime.fromtimestamp(job.created, UTC), started=ts(job.started),
-                   finished=ts(job.finished), expires=ts(job.expires), error=job.error,
-                   request_id=job.request_id)
 
 
 def _accepted(job: Job, request: Request) -> JSONResponse:
@@ -81,19 +53,22 @@ _KNOWN: dict[int | str, dict[str, Any]] = problem_responses(NOT_FOUND, UNAUTHORI
 
 @router.post("/v1/jobs/embed", summary="Start an embedding job", status_code=202, response_model=JobStatus,
              responses={**_CREATE, **problem_responses(*MESH_PROBLEMS, TOO_LITTLE_CAPACITY, NOT_READY)})
-async def create_embed_job(task: EmbedForm, runner: RunnerDep, request: Request) -> JSONResponse:
+async def create_embed_job(task: EmbedForm, callback_url: CallbackUrl, runner: RunnerDep,
+                           request: Request) -> JSONResponse:
     """Validate the form now, run the embedding in the background; the result has the same body
-    and headers as `POST /v1/embed`."""
-    job = await runner.submit(task)
+    and headers as `POST /v1/embed`.  With `callback_url`, the final status is also POSTed there."""
+    job = await runner.submit(task, callback_url)
     log_task(request, task, job=job.id)
     return _accepted(job, request)
 
 
 @router.post("/v1/jobs/detect", summary="Start a detection job", status_code=202, response_model=JobStatus,
              responses={**_CREATE, **problem_responses(*MESH_PROBLEMS, NOT_READY)})
-async def create_detect_job(task: DetectForm, runner: RunnerDep, request: Request) -> JSONResponse:
-    """Run a detection in the background; the result is the JSON of `POST /v1/detect`."""
-    job = await runner.submit(task)
+async def create_detect_job(task: DetectForm, callback_url: CallbackUrl, runner: RunnerDep,
+                            request: Request) -> JSONResponse:
+    """Run a detection in the background; the result is the JSON of `POST /v1/detect`.  With
+    `callback_url`, the final status is also POSTed there."""
+    job = await runner.submit(task, callback_url)
     log_task(request, task, job=job.id)
     return _accepted(job, request)
 

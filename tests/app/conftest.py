@@ -5,8 +5,10 @@ Nothing here fakes the engine: every request runs ``core`` in a worker process.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Iterator
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
 import pytest
@@ -97,3 +99,44 @@ def wait_job(client: TestClient, job_id: str, timeout: float = 60.0) -> dict[str
 
     result: dict[str, Any] = wait_for(finished, timeout)
     return result
+
+
+CALLBACK_SECRET = "callback-secret-for-tests"
+
+
+class Receiver:
+    """A real HTTP server on 127.0.0.1 that records the callbacks it gets and answers each with
+    the next status of ``answers`` (then 200)."""
+
+    def __init__(self) -> None:
+        self.received: list[tuple[float, dict[str, str], bytes]] = []
+        self.answers: list[int] = []
+        receiver = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_POST(self) -> None:  # noqa: N802 -- the http.server name
+                body = self.rfile.read(int(self.headers.get("content-length", 0)))
+                receiver.received.append((time.monotonic(), dict(self.headers.items()), body))
+                status = receiver.answers.pop(0) if receiver.answers else 200
+                self.send_response(status)
+                self.send_header("content-length", "0")
+                self.end_headers()
+
+            def log_message(self, *args: Any) -> None:
+                pass
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/hook"
+        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+
+@pytest.fixture
+def receiver() -> Iterator[Receiver]:
+    r = Receiver()
+    yield r
+    r.close()

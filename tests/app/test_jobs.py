@@ -2,9 +2,24 @@
 
 from __future__ import annotations
 
+import json
 import time
 
-from tests.app.conftest import KEY, assert_problem, detect, make_client, shared_mesh, wait_job
+import pytest
+from pydantic import ValidationError
+
+from app.config import Settings
+from meshmark.client import verify_signature
+from tests.app.conftest import (
+    CALLBACK_SECRET,
+    KEY,
+    assert_problem,
+    detect,
+    make_client,
+    shared_mesh,
+    wait_for,
+    wait_job,
+)
 
 STATUS_KEYS = {"id", "kind", "state", "progress", "created", "started", "finished", "expires", "error",
                "request_id"}
@@ -118,3 +133,36 @@ def test_store_limit_answers_busy(sphere_obj):
         response = client.post("/v1/jobs/embed", files={"mesh": ("s.obj", sphere_obj)}, data={"key": KEY})
         assert "DELETE" in assert_problem(response, 429, "busy")["detail"]
         assert int(response.headers["retry-after"]) >= 1
+
+
+def test_callback_is_signed_and_retried(sphere_obj, receiver):
+    """The final status reaches the receiver, signed with the server's secret; a 503 from the
+    receiver is tried again after the backoff; the URL must name an allowed host."""
+    receiver.answers = [503]  # the first delivery fails
+    with make_client(callback_hosts="127.0.0.1", callback_secret=CALLBACK_SECRET) as client:
+        bad = client.post("/v1/jobs/detect", files={"mesh": ("s.obj", sphere_obj)},
+                          data={"key": KEY, "callback_url": "http://169.254.169.254/latest/meta-data"})
+        assert "not among the hosts" in assert_problem(bad, 422, "bad-form")["detail"]
+        response = client.post("/v1/jobs/detect", files={"mesh": ("s.obj", sphere_obj)},
+                               data={"key": KEY, "callback_url": receiver.url},
+                               headers={"X-Request-ID": "cms-9"})
+        assert response.status_code == 202, response.text
+        job_id = response.json()["id"]
+        wait_for(lambda: len(receiver.received) >= 2, timeout=30)
+    (first, _, _), (second, headers, body) = receiver.received[:2]
+    assert second - first >= 0.9  # the backoff before the second attempt
+    assert verify_signature(CALLBACK_SECRET, body, headers["X-MeshMark-Signature"])
+    assert not verify_signature("another secret", body, headers["X-MeshMark-Signature"])
+    status = json.loads(body)
+    assert status["id"] == job_id == headers["X-MeshMark-Job"] and status["state"] == "succeeded"
+    assert status["request_id"] == headers["X-Request-ID"] == "cms-9"
+    time.sleep(1.5)
+    assert len(receiver.received) == 2  # delivered: no more attempts
+
+
+def test_callbacks_are_off_by_default(client, sphere_obj):
+    response = client.post("/v1/jobs/embed", files={"mesh": ("s.obj", sphere_obj)},
+                           data={"key": KEY, "callback_url": "http://127.0.0.1:9/hook"})
+    assert "callbacks are off" in assert_problem(response, 422, "bad-form")["detail"]
+    with pytest.raises(ValidationError, match="CALLBACK_SECRET is required"):
+        Settings(callback_hosts="cms.example")

@@ -44,7 +44,7 @@ from app.workers.tasks import Task
 from core.formats.base import Limits
 from core.options import Options
 from tests.app import test_jobs as memory_jobs
-from tests.app.conftest import KEY, assert_problem, detect, make_client, wait_for, wait_job
+from tests.app.conftest import CALLBACK_SECRET, KEY, assert_problem, detect, make_client, wait_for, wait_job
 from tests.app.real_server import free_port
 
 REDIS_URL = os.environ.get("MESHMARK_TEST_REDIS_URL", "redis://127.0.0.1:6379/15")
@@ -54,7 +54,7 @@ NAMESPACE = f"mmtest-{os.getpid()}-{uuid.uuid4().hex[:8]}"  # queue name and key
 SHARED_TESTS = [
     "test_embed_job_lifecycle", "test_detect_job", "test_failed_job_keeps_its_problem",
     "test_form_errors_are_immediate", "test_not_ready_then_cancel", "test_unknown_job",
-    "test_results_expire", "test_store_limit_answers_busy",
+    "test_results_expire", "test_store_limit_answers_busy", "test_callback_is_signed_and_retried",
 ]
 
 
@@ -137,7 +137,8 @@ def redis_env(blob_dir) -> Iterator[dict[str, str]]:
     if _SKIP is not None:
         pytest.skip(_SKIP)
     env = {"MESHMARK_JOBS_BACKEND": "redis", "MESHMARK_REDIS_URL": REDIS_URL,
-           "MESHMARK_JOBS_QUEUE": NAMESPACE, "MESHMARK_BLOB_DIR": str(blob_dir)}
+           "MESHMARK_JOBS_QUEUE": NAMESPACE, "MESHMARK_BLOB_DIR": str(blob_dir),
+           "MESHMARK_CALLBACK_SECRET": CALLBACK_SECRET}
     with pytest.MonkeyPatch.context() as mp:
         for name, value in env.items():
             mp.setenv(name, value)
