@@ -31,6 +31,33 @@ CAP_FACTORS = (1.0, 2.0, 4.0)
 ZERO_AREA = 1e-12
 
 
+def _no_progress(fraction: float) -> None:
+    pass
+
+
+class Milestones:
+    """Where each stage of a call ends, as the fraction of the call done, for the progress a
+    caller sees.  The engine's stages are opaque calls, so progress moves between them; the
+    fractions are their shares of the run time measured on the shared meshes (binary formats read
+    in ~5-10 %, text ones in 25-60 %: reading counts for a quarter)."""
+
+    READ = 0.25
+    #: embed: connectivity labels and neighbourhoods of every part
+    PREPARED = 0.4
+    #: embed: carriers moved (first attempt), then read back after the file's rounding
+    MOVED = 0.7
+    VERIFIED = 0.85
+    #: embed: distortion measured; the file is written last
+    MEASURED = 0.92
+    #: detect: every part analysed (carriers and statistics); decoding is the rest
+    ANALYSED = 0.6
+
+
+def _scaled(report: Progress, start: float, end: float) -> Progress:
+    """``report`` for a sub-stage whose own 0..1 maps to ``start``..``end``."""
+    return lambda fraction: report(start + (end - start) * fraction)
+
+
 def _unusable(vertices: np.ndarray, faces: np.ndarray) -> str | None:
     """Why a welded mesh part cannot carry a watermark, or ``None`` when it can."""
     if len(vertices) < 4:
@@ -72,12 +99,16 @@ def _usable_parts(doc: MeshDocument) -> list[int]:
     return idx
 
 
-def _analyses(doc: MeshDocument, parts: list[int], key: str | bytes,
-              methods: Sequence[str]) -> dict[str, list[Analysis]]:
+def _analyses(doc: MeshDocument, parts: list[int], key: str | bytes, methods: Sequence[str],
+              progress: Progress = _no_progress) -> dict[str, list[Analysis]]:
+    """Every part analysed under ``key``; ``progress`` by vertices analysed."""
     out: dict[str, list[Analysis]] = {m: [] for m in methods}
+    total, done = sum(len(doc.parts[i].vertices) for i in parts) or 1, 0
     for i in parts:
         for m, a in analyse_methods(doc.parts[i].vertices, doc.parts[i].faces, key, methods).items():
             out[m].append(a)
+        done += len(doc.parts[i].vertices)
+        progress(done / total)
     return out
 
 
@@ -153,10 +184,6 @@ class _ArrayDoc(MeshDocument):
         super().__init__(b"", parts)
 
 
-def _no_progress(fraction: float) -> None:
-    pass
-
-
 def embed_mesh(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, *, payload: str | None = None,
                method: str = DEFAULT_METHOD, strength: float | None = None) -> tuple[np.ndarray, EmbedReport]:
     """Array-level embedding.
@@ -214,8 +241,9 @@ def embed(data: bytes, options: Options, *, filename: str | None = None, limits:
     """
     options.secret  # noqa: B018 -- no key is a PayloadError before the file is parsed
     report = progress or _no_progress
+    report(0.0)
     doc = read_mesh(data, filename, limits)
-    report(0.1)
+    report(Milestones.READ)
     new, rep, dec = _embed_doc(doc, options, report)
     out = doc.write(new, decimals=dec) if dec is not None else doc.write(new)
     report(1.0)
@@ -245,6 +273,14 @@ def _embed_doc(doc: MeshDocument, options: Options,
              for d in ([decimals] if decimals is None else [decimals, decimals + 2, decimals + 4, 17])]
     meshes = [(doc.parts[i].vertices, doc.parts[i].faces) for i in parts]
     prepared = prepare([v for v, _ in meshes], [f for _, f in meshes])
+    report(Milestones.PREPARED)
+    # attempt k (a retry is for coarse meshes and rounding) moves progress over the k-th half of
+    # what is left between MOVED and VERIFIED: the first attempt gets half, and it never goes back
+    span = Milestones.VERIFIED - Milestones.MOVED
+
+    def attempt_start(k: int) -> float:
+        return Milestones.MOVED + span * (1 - 0.5**k)
+
     for attempt, (factor, dec) in enumerate(tries):
         new = [p.vertices.copy() for p in doc.parts]
         tol = replace(TOL, coarse_move=TOL.coarse_move * factor, max_local_move=TOL.max_local_move * factor,
@@ -255,7 +291,7 @@ def _embed_doc(doc: MeshDocument, options: Options,
             new[i] = vs[k]
         carriers = sum(st.carriers for st in stats)
         skipped = sum(st.skipped for st in stats)
-        report(0.1 + 0.7 * (attempt + 1) / len(tries))
+        report(attempt_start(attempt))
         if carriers < L:
             raise CapacityError(
                 f"too little capacity: {carriers} carriers for a {L}-bit codeword "
@@ -266,15 +302,22 @@ def _embed_doc(doc: MeshDocument, options: Options,
         # the embedder's last analysis is the detector's view of the stego mesh, and so is every
         # part with room for a copy of its own (a mesh extracted from the file)
         groups = [final] + [[a] for a in final if len(final) > 1 and own_copy(a.slot_hash, L)]
-        ok = all(_reads_back(detect_analyses({method: g}, key, bits), bits) for g in groups)
+        verify = _scaled(report, attempt_start(attempt), attempt_start(attempt + 1))
+        ok = True
+        for k, group in enumerate(groups):
+            ok = _reads_back(detect_analyses({method: group}, key, bits), bits)
+            verify((k + 1) / len(groups))
+            if not ok:
+                break
         if ok or attempt == len(tries) - 1:
             break
-    report(0.85)
+    report(Milestones.VERIFIED)
     if not ok:
         raise CapacityError("the watermark could not be made readable on this mesh at this strength "
                             f"({carriers} carriers, {skipped} over the displacement cap)"
                             f"; try a larger strength (now {s:g}, at most 1)", carriers=carriers, needed=L)
     moved, rms, mx, haus = _distortion(doc, new, {i: prepared[k][0] for k, i in enumerate(parts)})
+    report(Milestones.MEASURED)
     part_info = []
     for k, i in enumerate(parts):
         part_info.append({"name": doc.parts[i].name, "vertices": len(doc.parts[i].vertices),
@@ -299,9 +342,10 @@ def detect(data: bytes, options: Options, *, filename: str | None = None, limits
     """
     options.secret  # noqa: B018 -- no key is a PayloadError before the file is parsed
     report = progress or _no_progress
+    report(0.0)
     doc = read_mesh(data, filename, limits)
-    report(0.2)
-    res = _detect_doc(doc, options)
+    report(Milestones.READ)
+    res = _detect_doc(doc, options, _scaled(report, Milestones.READ, Milestones.ANALYSED))
     report(1.0)
     return res
 
@@ -314,10 +358,12 @@ def detect_file(data: bytes, key: str | bytes, *, filename: str | None = None, p
     return detect(data, options, filename=filename, limits=limits or DEFAULT_LIMITS, progress=progress)
 
 
-def _detect_doc(doc: MeshDocument, options: Options) -> DetectResult:
+def _detect_doc(doc: MeshDocument, options: Options, analysed: Progress = _no_progress) -> DetectResult:
+    """``analysed`` follows the analysis of the parts (0 to 1); decoding comes after."""
     key = options.secret
     parts = _usable_parts(doc)
-    return detect_analyses(_analyses(doc, parts, key, options.detect_methods), key, options.payload_bits)
+    analyses = _analyses(doc, parts, key, options.detect_methods, analysed)
+    return detect_analyses(analyses, key, options.payload_bits)
 
 
 def _largest_payload(carriers: float) -> int:
@@ -333,11 +379,14 @@ _CAPACITY_KEY = b"meshmark-capacity-probe"
 
 
 def capacity(data: bytes, options: Options, *, filename: str | None = None,
-             limits: Limits = DEFAULT_LIMITS) -> CapacityReport:
+             limits: Limits = DEFAULT_LIMITS, progress: Progress | None = None) -> CapacityReport:
     """Carriers and payload room of a mesh file, without embedding (``options``: ``method`` and
     ``strength``; the key is not used)."""
     method, s = options.embed_method, options.margin
+    report = progress or _no_progress
+    report(0.0)
     doc = read_mesh(data, filename, limits)
+    report(Milestones.READ)
     parts = _usable_parts(doc)
     carriers = 0
     new = [p.vertices.copy() for p in doc.parts]
@@ -351,9 +400,11 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
         carriers += stats[k].carriers
         info.append({"name": doc.parts[i].name, "vertices": len(doc.parts[i].vertices),
                      "carriers": stats[k].carriers})
+    report(Milestones.VERIFIED)
     max_bits = _largest_payload(carriers / CAPACITY_MARGIN)
     by_copies = {str(c): _largest_payload(carriers / c) for c in (1, 2, 4, 8, 16)}
     _, rms, mx, _ = _distortion(doc, new, {}, hausdorff=False)
+    report(1.0)
     return CapacityReport(method=method, strength=s, carriers=carriers, max_payload_bits=max_bits,
                           copies_of_default=round(carriers / codeword_length(None), 3),
                           codeword_bits_default=codeword_length(None), payload_bits_by_copies=by_copies,

@@ -65,7 +65,8 @@ def _detect(task: Task, progress: api.Progress) -> api.DetectResult:
 
 
 def _capacity(task: Task, progress: api.Progress) -> api.CapacityReport:
-    return api.capacity(task.data, task.options, filename=task.filename, limits=task.limits)
+    return api.capacity(task.data, task.options, filename=task.filename, limits=task.limits,
+                        progress=progress)
 
 
 def _preview(task: Task, progress: api.Progress) -> PreviewGeometry:
