@@ -56,7 +56,7 @@ def _progress_bar(label: str) -> api.Progress | None:
     return show
 
 
-def _read_key(args: argparse.Namespace) -> str:
+def _read_key(args: argparse.Namespace, required: bool = True) -> str | None:
     """``--key``, else ``--key-file`` (one trailing newline dropped), else ``$MESHMARK_KEY``."""
     if args.key is not None:
         key = args.key
@@ -70,6 +70,8 @@ def _read_key(args: argparse.Namespace) -> str:
         key = key.removesuffix("\n").removesuffix("\r")
     else:
         key = os.environ.get(KEY_ENV)
+        if key is None and not required:
+            return None
         if key is None:
             raise _UsageError(f"give the watermark key with --key, --key-file or ${KEY_ENV}")
     check_key(key)
@@ -129,6 +131,7 @@ def _report_stream(args: argparse.Namespace) -> Any:
 
 def _embed(args: argparse.Namespace) -> int:
     key = _read_key(args)
+    assert key is not None
     data = _read_mesh(args.input)
     options = api.Options(key=key, payload=args.payload, method=args.method, strength=args.strength)
     _check_output(data, args)
@@ -152,6 +155,7 @@ def _remote_embed(mm: Any, args: argparse.Namespace, data: bytes, key: str) -> i
 
 def _detect(args: argparse.Namespace) -> int:
     key = _read_key(args)
+    assert key is not None
     data = _read_mesh(args.input)
     options = api.Options(key=key, payload=args.payload, method=args.method)
     if args.server:
@@ -167,11 +171,12 @@ def _detect(args: argparse.Namespace) -> int:
 
 
 def _capacity(args: argparse.Namespace) -> int:
+    key = _read_key(args, required=False)
     data = _read_mesh(args.input)
-    options = api.Options(method=args.method, strength=args.strength)
+    options = api.Options(key=key, method=args.method, strength=args.strength)
     if args.server:
         report: dict[str, Any] = _remote(args, lambda mm: mm.capacity(
-            data, method=args.method, strength=args.strength, filename=_name(args.input) or "mesh"))
+            data, key=key, method=args.method, strength=args.strength, filename=_name(args.input) or "mesh"))
     else:
         tune_malloc()
         report = api.capacity(data, options, filename=_name(args.input)).to_dict()
@@ -304,8 +309,10 @@ def _parser() -> argparse.ArgumentParser:
     server_option(p)
     p.set_defaults(run=_detect)
 
-    p = sub.add_parser("capacity", help="carriers and payload room of a mesh")
+    p = sub.add_parser("capacity", help="carriers and payload room of a mesh (with a key: exactly the "
+                       "carriers an embedding with it will have)")
     p.add_argument("input", help=mesh_help)
+    key_options(p)
     method_option(p, api.DEFAULT_METHOD)
     p.add_argument("--strength", type=float, help="boundary margin, > 0")
     server_option(p)

@@ -72,14 +72,26 @@ async def require_caller(
                        headers={"WWW-Authenticate": "Bearer"})
 
 
+_KEY_FIELD = Form(description=f"Secret watermark key, 1-{MAX_KEY_CHARS} characters, no control characters. "
+                  "Give it here or in the X-Watermark-Key header: exactly one of the two.",
+                  json_schema_extra=KEY_SCHEMA)
+_KEY_HEADER = Header(description="The watermark key, instead of the `key` form field: its UTF-8 bytes (the "
+                     "pattern reads them as Latin-1, as HTTP does).", json_schema_extra=KEY_HEADER_SCHEMA)
+
+
+async def optional_watermark_key(
+    key: Annotated[str | None, _KEY_FIELD] = None,
+    x_watermark_key: Annotated[str | None, _KEY_HEADER] = None,
+) -> str | None:
+    """The watermark key from the form field or the header (not both), or None."""
+    if not key and x_watermark_key is None:
+        return None
+    return await watermark_key(key, x_watermark_key)
+
+
 async def watermark_key(
-    key: Annotated[str | None, Form(description=f"Secret watermark key, 1-{MAX_KEY_CHARS} characters, no "
-                                    "control characters. Give it here or in the X-Watermark-Key header: "
-                                    "exactly one of the two.", json_schema_extra=KEY_SCHEMA)] = None,
-    x_watermark_key: Annotated[str | None, Header(description="The watermark key, instead of the "
-                                                  "`key` form field: its UTF-8 bytes (the pattern "
-                                                  "reads them as Latin-1, as HTTP does).",
-                                                  json_schema_extra=KEY_HEADER_SCHEMA)] = None,
+    key: Annotated[str | None, _KEY_FIELD] = None,
+    x_watermark_key: Annotated[str | None, _KEY_HEADER] = None,
 ) -> str:
     """The watermark key from the form field or the header (exactly one of them)."""
     if key is not None and x_watermark_key is not None:
@@ -99,3 +111,4 @@ async def watermark_key(
 
 
 WatermarkKey = Annotated[str, Depends(watermark_key)]
+OptionalWatermarkKey = Annotated[str | None, Depends(optional_watermark_key)]

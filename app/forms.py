@@ -21,7 +21,7 @@ from starlette.datastructures import FormData
 from starlette.types import Receive
 
 from app.callbacks import CallbackRefused, check_url
-from app.deps import SettingsDep, WatermarkKey
+from app.deps import OptionalWatermarkKey, SettingsDep, WatermarkKey
 from app.inputs import PAYLOAD_SCHEMA, STRENGTH_SCHEMA
 from app.multipart import FormError, FormParser
 from app.problems import BAD_FORM, NOT_MULTIPART, ProblemError, problem_response
@@ -197,11 +197,13 @@ async def detect_task(
 async def capacity_task(
     settings: SettingsDep,
     mesh: MeshFile,
+    key: OptionalWatermarkKey,
     method: Annotated[str, Form(json_schema_extra=_METHOD_SCHEMA)] = DEFAULT_METHOD,
     strength: Strength = None,
 ) -> Task:
+    """With the key, the carriers are exactly those an embedding with it will have."""
     data = await mesh.read()
-    options = _options(method=method, strength=strength)
+    options = _options(key=key, method=method, strength=strength)
     return Task("capacity", data, options, filename=mesh.filename, limits=settings.limits(),
                 request_id=current_request_id())
 

@@ -324,11 +324,12 @@ class Client(_Base):
         finally:
             self.delete(job)
 
-    def capacity(self, mesh: MeshSource, *, method: str | None = None, strength: float | None = None,
-                 filename: str | None = None) -> dict[str, Any]:
-        """Carriers and payload room of ``mesh`` (a quick synchronous request)."""
+    def capacity(self, mesh: MeshSource, *, key: str | None = None, method: str | None = None,
+                 strength: float | None = None, filename: str | None = None) -> dict[str, Any]:
+        """Carriers and payload room of ``mesh`` (a quick synchronous request); with ``key``, the
+        carriers an embedding with that key will have."""
         response = self._send("POST", "/v1/capacity", mesh=mesh, filename=filename,
-                              data=_fields(method=method, strength=strength),
+                              data=_fields(key=key, method=method, strength=strength),
                               headers=self._request_headers())
         report: dict[str, Any] = response.json()
         return report
@@ -439,10 +440,10 @@ class AsyncClient(_Base):
         finally:
             await self.delete(job)
 
-    async def capacity(self, mesh: MeshSource, *, method: str | None = None, strength: float | None = None,
-                       filename: str | None = None) -> dict[str, Any]:
+    async def capacity(self, mesh: MeshSource, *, key: str | None = None, method: str | None = None,
+                       strength: float | None = None, filename: str | None = None) -> dict[str, Any]:
         response = await self._send("POST", "/v1/capacity", mesh=mesh, filename=filename,
-                                    data=_fields(method=method, strength=strength),
+                                    data=_fields(key=key, method=method, strength=strength),
                                     headers=self._request_headers())
         report: dict[str, Any] = response.json()
         return report
