@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import socket
 import sys
@@ -201,6 +202,29 @@ def _remote(args: argparse.Namespace, work: Any) -> Any:
         _fail(EXIT_SERVER, f"cannot reach {args.server}: {exc}")
 
 
+#: the top-level packages this distribution installs
+OUR_PACKAGES = ("app", "core", "meshmark")
+
+
+def foreign_owners() -> dict[str, list[str]]:
+    """Top-level packages of ours that another installed distribution also provides (the generic
+    ``app`` and ``core`` can collide: the second install overwrites the first one's files)."""
+    from importlib.metadata import packages_distributions
+
+    owners = packages_distributions()
+    found = {name: sorted(d for d in set(owners.get(name, [])) if d.lower() != "meshmark")
+             for name in OUR_PACKAGES}
+    return {name: dists for name, dists in found.items() if dists}
+
+
+def _warn_about_collisions() -> None:
+    for package, dists in foreign_owners().items():
+        logging.getLogger("meshmark.app").warning(
+            "the top-level package '%s' is also installed by %s: one install overwrites the other's files; "
+            "install meshmark in its own virtual environment (or use the Docker image)", package,
+            ", ".join(dists))
+
+
 def _settings(**overrides: Any) -> Any:
     """The service settings, flags over ``MESHMARK_*`` variables; an invalid one is a usage error."""
     from pydantic import ValidationError
@@ -242,6 +266,7 @@ def _serve(args: argparse.Namespace) -> int:
     from app.main import create_app  # after the settings are checked: the module makes a default app
 
     configure_logging(settings.log_level, settings.log_format)
+    _warn_about_collisions()
     sock = _listen(settings.host, settings.port)
     # httptools and uvloop (dependencies) rather than uvicorn's pure-Python fallbacks: under
     # overload the API process spends its time reading uploads it refuses.  Access lines come
@@ -261,6 +286,7 @@ def _worker(args: argparse.Namespace) -> int:
         raise _UsageError(f"the Redis backend needs the 'redis' extra (pip install 'meshmark[redis]'): "
                           f"{exc}") from None
     one_blas_thread()
+    _warn_about_collisions()  # (Celery sets up its own logging later: this goes to stderr as is)
     try:
         run_worker(settings)
     except PermissionError as exc:
