@@ -17,9 +17,11 @@ from core.preview import PreviewGeometry
 EMBED_HEADERS: dict[str, str] = {
     "X-MeshMark-Method": "Embedding method (`ellipsoids` or `planes`).",
     "X-MeshMark-Payload-Bits": "Payload length in bits (32 for the key-derived code).",
-    "X-MeshMark-Carriers": "Carriers moved, all mesh parts together.",
+    "X-MeshMark-Carriers": "Carrier vertices under this key, all mesh parts together (one codeword bit "
+                           "each; those already inside their margin, and the report's `skipped`, do not "
+                           "move). `/v1/capacity` with the same key gives the same count.",
     "X-MeshMark-Copies": "Carriers per codeword bit.",
-    "X-MeshMark-Vertices-Moved": "Vertices whose position changed.",
+    "X-MeshMark-Vertices-Moved": "Vertices whose stored position changed (not the carrier count).",
     "X-MeshMark-RMS-Displacement": "RMS vertex displacement / bounding-box diagonal.",
     "X-MeshMark-Max-Displacement": "Largest vertex displacement / bounding-box diagonal.",
     "X-MeshMark-Hausdorff": "Symmetric Hausdorff distance / bounding-box diagonal.",

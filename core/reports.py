@@ -30,7 +30,7 @@ class EmbedReport(_Report):
     payload_bits: int          # payload length (32 for the key-derived default code)
     key_derived: bool          # True when no payload was given (the paper's mode)
     codeword_bits: int         # bits after CRC + error-correcting code
-    carriers: int              # carriers moved (all parts)
+    carriers: int              # carrier vertices under the key (all parts); not all of them move
     copies: float              # carriers / codeword_bits
     skipped: int               # carriers left alone because they would exceed the displacement cap
     vertices_moved: int
@@ -44,7 +44,8 @@ class EmbedReport(_Report):
 @dataclass(frozen=True)
 class DetectResult(_Report):
     """Blind detection result.  ``detected`` means the CRC verified (or, for the key-derived
-    code, the bit errors are few enough that ``false_positive_probability`` < 1e-6)."""
+    code, the bit errors are few enough that ``false_positive_probability`` < 1e-6).  ``crc_ok``
+    is about a payload's CRC-32: always False for the key-derived code, which has none."""
 
     detected: bool
     payload: str | None              # bitstring of '0'/'1'
