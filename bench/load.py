@@ -330,13 +330,13 @@ def main(argv: list[str] | None = None) -> int:
         except RuntimeError:
             raise SystemExit(f"server did not start: {log.read_text()}") from None
     try:
-        slots = int(
+        slots = int(float(  # prometheus-client writes counts as floats: "8.0"
             next(
                 line.split()[1]
                 for line in httpx.get(f"{base}/metrics").text.splitlines()
                 if line.startswith("meshmark_queue_capacity ")
             )
-        )
+        ))
 
         # 1. calibration: the reference output, then the throughput of a closed loop that keeps
         # every worker busy (2 requests per worker in flight): that is the capacity C
