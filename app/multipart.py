@@ -104,7 +104,8 @@ class FormParser:
         if b"filename" in options:
             if len(self._files) >= self.max_files:
                 raise FormError(f"Too many files: at most {self.max_files}")
-            spool: Any = SpooledTemporaryFile(max_size=self.spool_max_size)  # a BinaryIO in practice
+            # closed with the form (FormData.close) or by _close when the body is refused
+            spool: Any = SpooledTemporaryFile(max_size=self.spool_max_size)  # noqa: SIM115
             part.file = UploadFile(spool, size=0, filename=_decode_name(options[b"filename"], self._charset),
                                    headers=Headers(raw=part.headers))
             self._files.append(part.file)

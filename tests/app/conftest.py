@@ -114,7 +114,7 @@ class Receiver:
         receiver = self
 
         class Handler(BaseHTTPRequestHandler):
-            def do_POST(self) -> None:  # noqa: N802 -- the http.server name
+            def do_POST(self) -> None:
                 body = self.rfile.read(int(self.headers.get("content-length", 0)))
                 receiver.received.append((time.monotonic(), dict(self.headers.items()), body))
                 status = receiver.answers.pop(0) if receiver.answers else 200
