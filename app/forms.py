@@ -24,7 +24,7 @@ from app.callbacks import CallbackRefused, check_url
 from app.deps import OptionalWatermarkKey, SettingsDep, WatermarkKey
 from app.inputs import PAYLOAD_SCHEMA, STRENGTH_SCHEMA
 from app.multipart import FormError, FormParser
-from app.problems import BAD_FORM, NOT_MULTIPART, ProblemError, problem_response
+from app.problems import BAD_FORM, CALLBACK_NOT_ALLOWED, NOT_MULTIPART, ProblemError, problem_response
 from app.request_id import current_request_id
 from app.workers.tasks import Task
 from core.coding import MAX_PAYLOAD_BITS
@@ -41,6 +41,7 @@ MAX_TEXT_FIELD_BYTES = 64 * 1024
 #: and read to every larger mesh
 SPOOL_MAX_BYTES = 16 * 1024 * 1024
 FORMAT_LABELS = [spec.label for spec in FORMATS.values()]
+MAX_CALLBACK_URL = 2048
 #: what a caller who sent something else should do instead
 MULTIPART_HINT = ("send the mesh as a file part named 'mesh' and the options as text parts "
                   "(curl: -F mesh=@model.obj -F key=...; Python httpx: "
@@ -221,15 +222,18 @@ async def callback_url(
     callback_url: Annotated[str | None, Form(description="Where to POST the job's final status, signed "
                                               "(`X-MeshMark-Signature`); its host must be one the server "
                                               "allows (`MESHMARK_CALLBACK_HOSTS`, none by default).",
-                                              json_schema_extra={"format": "uri", "maxLength": 2048})] = None,
+                                              json_schema_extra={"format": "uri",
+                                                                 "maxLength": MAX_CALLBACK_URL})] = None,
 ) -> str | None:
     """The job's callback URL, when it names an allowed host (``bad-form`` otherwise)."""
     if not callback_url:
         return None
+    if len(callback_url) > MAX_CALLBACK_URL:
+        raise ProblemError(BAD_FORM, f"callback_url must be at most {MAX_CALLBACK_URL} characters")
     try:
-        return check_url(callback_url[:2048], settings.callback_hosts)
+        return check_url(callback_url, settings.callback_hosts)
     except CallbackRefused as exc:
-        raise ProblemError(BAD_FORM, str(exc)) from None
+        raise ProblemError(CALLBACK_NOT_ALLOWED, str(exc)) from None
 
 
 EmbedForm = Annotated[Task, Depends(embed_task)]

@@ -41,6 +41,7 @@ class ProblemType:
 BAD_FORM = ProblemType("bad-form", 422, "The request form is invalid")
 UNSUPPORTED_FORMAT = ProblemType("unsupported-format", 415, "Unsupported mesh format")
 NOT_MULTIPART = ProblemType("not-multipart", 415, "The request body must be multipart/form-data")
+CALLBACK_NOT_ALLOWED = ProblemType("callback-not-allowed", 422, "This server may not call that callback URL")
 MALFORMED_MESH = ProblemType("malformed-mesh", 422, "Malformed mesh file")
 INVALID_INPUT = ProblemType("invalid-input", 422, "The engine rejected the input")
 TOO_LARGE = ProblemType("too-large", 413, "Input too large")
@@ -59,7 +60,7 @@ INTERNAL = ProblemType("internal-error", 500, "Internal server error")
 PROBLEM_TYPES = (
     BAD_FORM, UNSUPPORTED_FORMAT, NOT_MULTIPART, MALFORMED_MESH, INVALID_INPUT, TOO_LARGE,
     TOO_LITTLE_CAPACITY, DEGENERATE_MESH, BUSY, TIMED_OUT, WORKER_FAILED, NOT_FOUND, JOB_NOT_READY,
-    JOB_FAILED, UNAUTHORIZED, NOT_READY, INTERNAL,
+    JOB_FAILED, UNAUTHORIZED, NOT_READY, INTERNAL, CALLBACK_NOT_ALLOWED,
 )
 
 #: engine exception -> problem type; looked up along the exception's MRO

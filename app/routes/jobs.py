@@ -17,6 +17,7 @@ from app.forms import CallbackUrl, DetectForm, EmbedForm, StrictFormRoute
 from app.jobs import Job, JobStatus, JobStore
 from app.logs import log_task
 from app.problems import (
+    CALLBACK_NOT_ALLOWED,
     JOB_FAILED,
     JOB_NOT_READY,
     NOT_FOUND,
@@ -52,7 +53,8 @@ _KNOWN: dict[int | str, dict[str, Any]] = problem_responses(NOT_FOUND, UNAUTHORI
 
 
 @router.post("/v1/jobs/embed", summary="Start an embedding job", status_code=202, response_model=JobStatus,
-             responses={**_CREATE, **problem_responses(*MESH_PROBLEMS, TOO_LITTLE_CAPACITY, NOT_READY)})
+             responses={**_CREATE, **problem_responses(*MESH_PROBLEMS, TOO_LITTLE_CAPACITY, NOT_READY,
+                                                       CALLBACK_NOT_ALLOWED)})
 async def create_embed_job(task: EmbedForm, callback_url: CallbackUrl, runner: RunnerDep,
                            request: Request) -> JSONResponse:
     """Validate the form now, run the embedding in the background; the result has the same body
@@ -63,7 +65,7 @@ async def create_embed_job(task: EmbedForm, callback_url: CallbackUrl, runner: R
 
 
 @router.post("/v1/jobs/detect", summary="Start a detection job", status_code=202, response_model=JobStatus,
-             responses={**_CREATE, **problem_responses(*MESH_PROBLEMS, NOT_READY)})
+             responses={**_CREATE, **problem_responses(*MESH_PROBLEMS, NOT_READY, CALLBACK_NOT_ALLOWED)})
 async def create_detect_job(task: DetectForm, callback_url: CallbackUrl, runner: RunnerDep,
                             request: Request) -> JSONResponse:
     """Run a detection in the background; the result is the JSON of `POST /v1/detect`.  With

@@ -142,7 +142,7 @@ def test_callback_is_signed_and_retried(sphere_obj, receiver):
     with make_client(callback_hosts="127.0.0.1", callback_secret=CALLBACK_SECRET) as client:
         bad = client.post("/v1/jobs/detect", files={"mesh": ("s.obj", sphere_obj)},
                           data={"key": KEY, "callback_url": "http://169.254.169.254/latest/meta-data"})
-        assert "not among the hosts" in assert_problem(bad, 422, "bad-form")["detail"]
+        assert "not among the hosts" in assert_problem(bad, 422, "callback-not-allowed")["detail"]
         response = client.post("/v1/jobs/detect", files={"mesh": ("s.obj", sphere_obj)},
                                data={"key": KEY, "callback_url": receiver.url},
                                headers={"X-Request-ID": "cms-9"})
@@ -163,6 +163,6 @@ def test_callback_is_signed_and_retried(sphere_obj, receiver):
 def test_callbacks_are_off_by_default(client, sphere_obj):
     response = client.post("/v1/jobs/embed", files={"mesh": ("s.obj", sphere_obj)},
                            data={"key": KEY, "callback_url": "http://127.0.0.1:9/hook"})
-    assert "callbacks are off" in assert_problem(response, 422, "bad-form")["detail"]
+    assert "callbacks are off" in assert_problem(response, 422, "callback-not-allowed")["detail"]
     with pytest.raises(ValidationError, match="CALLBACK_SECRET is required"):
         Settings(callback_hosts="cms.example")

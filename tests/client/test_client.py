@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import email.utils
 import json
 import os
 import subprocess
@@ -13,7 +14,7 @@ import httpx
 import pytest
 
 from core import api
-from meshmark.client import AsyncClient, Client, ProblemError
+from meshmark.client import AsyncClient, Client, ProblemError, _retry_delay
 from tests.app.conftest import KEY
 from tests.app.real_server import MESHMARK, serve
 from tests.conftest import shared_mesh_path
@@ -116,3 +117,16 @@ def test_cli_with_server_prints_and_writes_what_the_local_cli_does(server, spot,
     assert refused.returncode == 2 and b"the file is empty" in refused.stderr
     unreachable = meshmark("capacity", str(spot), "--server", "http://127.0.0.1:9")
     assert unreachable.returncode == 4 and b"cannot reach" in unreachable.stderr
+
+
+def test_retry_delay_follows_retry_after_within_bounds():
+    """Seconds or an HTTP date, as RFC 9110 allows; exponential without one; never over max_wait."""
+    def answer(**headers: str) -> httpx.Response:
+        return httpx.Response(503, headers=headers)
+
+    assert _retry_delay(answer(**{"Retry-After": "3"}), 0, max_wait=30) == 3
+    assert _retry_delay(answer(**{"Retry-After": "120"}), 0, max_wait=30) == 30
+    in_two = email.utils.formatdate(time.time() + 2, usegmt=True)
+    assert 0.5 < _retry_delay(answer(**{"Retry-After": in_two}), 0, max_wait=30) <= 2
+    assert [_retry_delay(answer(), n, max_wait=3) for n in range(4)] == [0.5, 1, 2, 3]
+    assert _retry_delay(None, 1, max_wait=30) == 1  # a broken connection: exponential too
