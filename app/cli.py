@@ -57,10 +57,11 @@ def _progress_bar(label: str) -> api.Progress | None:
     return show
 
 
-def _read_key(args: argparse.Namespace, required: bool = True) -> str | None:
-    """``--key``, else ``--key-file`` (one trailing newline dropped), else ``$MESHMARK_KEY``."""
+def _given_key(args: argparse.Namespace) -> str | None:
+    """``--key``, else ``--key-file`` (one trailing newline dropped), else ``$MESHMARK_KEY``, else
+    None."""
     if args.key is not None:
-        key = args.key
+        key: str | None = args.key
     elif args.key_file is not None:
         try:
             key = Path(args.key_file).read_bytes().decode("utf-8")
@@ -71,11 +72,15 @@ def _read_key(args: argparse.Namespace, required: bool = True) -> str | None:
         key = key.removesuffix("\n").removesuffix("\r")
     else:
         key = os.environ.get(KEY_ENV)
-        if key is None and not required:
-            return None
-        if key is None:
-            raise _UsageError(f"give the watermark key with --key, --key-file or ${KEY_ENV}")
-    check_key(key)
+    if key is not None:
+        check_key(key)
+    return key
+
+
+def _read_key(args: argparse.Namespace) -> str:
+    key = _given_key(args)
+    if key is None:
+        raise _UsageError(f"give the watermark key with --key, --key-file or ${KEY_ENV}")
     return key
 
 
@@ -132,7 +137,6 @@ def _report_stream(args: argparse.Namespace) -> Any:
 
 def _embed(args: argparse.Namespace) -> int:
     key = _read_key(args)
-    assert key is not None
     data = _read_mesh(args.input)
     options = api.Options(key=key, payload=args.payload, method=args.method, strength=args.strength)
     _check_output(data, args)
@@ -156,7 +160,6 @@ def _remote_embed(mm: Any, args: argparse.Namespace, data: bytes, key: str) -> i
 
 def _detect(args: argparse.Namespace) -> int:
     key = _read_key(args)
-    assert key is not None
     data = _read_mesh(args.input)
     options = api.Options(key=key, payload=args.payload, method=args.method)
     if args.server:
@@ -172,7 +175,7 @@ def _detect(args: argparse.Namespace) -> int:
 
 
 def _capacity(args: argparse.Namespace) -> int:
-    key = _read_key(args, required=False)
+    key = _given_key(args)
     data = _read_mesh(args.input)
     options = api.Options(key=key, method=args.method, strength=args.strength)
     if args.server:

@@ -135,3 +135,14 @@ def test_a_port_in_use_is_a_usage_error():
         busy = _meshmark("serve", "--port", str(port))
     assert busy.returncode == EXIT_USAGE, busy.stderr
     assert f"cannot listen on 127.0.0.1:{port}".encode() in busy.stderr and b"Traceback" not in busy.stderr
+
+
+def test_capacity_with_the_key_counts_the_embedding_carriers(capsys, tmp_path, spot, monkeypatch):
+    monkeypatch.delenv("MESHMARK_KEY", raising=False)
+    _, out, _ = run(capsys, "embed", str(spot), str(tmp_path / "m.obj"), "--key", KEY)
+    carriers = json.loads(out)["carriers"]
+    _, out, _ = run(capsys, "capacity", str(spot), "--key", KEY)
+    assert json.loads(out)["carriers"] == carriers
+    monkeypatch.setenv("MESHMARK_KEY", KEY)
+    _, out, _ = run(capsys, "capacity", str(spot))
+    assert json.loads(out)["carriers"] == carriers
