@@ -5,7 +5,8 @@ silently turn a mangled key into a different key, and when a field comes twice i
 one (two keys, or two meshes, would be a silent choice).  :class:`StrictFormRoute` parses bodies
 with :class:`app.multipart.FormParser`, which rejects both (``bad-form``, 422), with tight limits
 (the route's ``max_files`` files, :data:`MAX_FORM_FIELDS` text fields of at most
-:data:`MAX_TEXT_FIELD_BYTES` each), and answers a body that is not ``multipart/form-data`` with ``not-multipart`` (415) and what to send.
+:data:`MAX_TEXT_FIELD_BYTES` each), and answers a body that is not ``multipart/form-data`` with
+``not-multipart`` (415) and what to send.
 """
 
 from __future__ import annotations
