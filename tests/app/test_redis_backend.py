@@ -43,6 +43,7 @@ from app.results import Rendered
 from app.workers.tasks import Task
 from core.formats.base import Limits
 from core.options import Options
+from core.pipeline import Milestones
 from tests.app import test_jobs as memory_jobs
 from tests.app.conftest import CALLBACK_SECRET, KEY, assert_problem, detect, make_client, wait_for, wait_job
 from tests.app.real_server import free_port
@@ -226,14 +227,22 @@ def _start(client, name: str, data: bytes, kind: str = "embed", **fields: str) -
 
 
 def _kill_running(records: JobRecords, workers: list[Worker], job_id: str, attempt: int) -> int:
-    """SIGKILL the worker child running ``job_id`` in the middle of its attempt ``attempt``
-    (progress 0.1 to 0.33 is the bulk of an embedding: the mesh is read, carriers are chosen)."""
+    """SIGKILL the worker child running ``job_id`` in the middle of its attempt ``attempt``:
+    running, before its carriers are moved (progress below ``Milestones.MOVED``).  A narrower
+    window (the read stage alone) was missed on a loaded CI machine."""
+    seen: list[dict[str, str]] = []
+
     def running() -> dict[str, str] | None:
         f = records.fields(job_id)
+        if not seen or seen[-1] != f:
+            seen.append(f)
         return f if f.get("state") == "running" and f.get("attempts") == str(attempt) \
-            and 0.1 <= float(f.get("progress", 0)) < 0.3 else None
+            and float(f.get("progress", 0)) < Milestones.MOVED else None
 
-    pid = int(wait_for(running, timeout=60)["pid"])
+    try:
+        pid = int(wait_for(running, timeout=120)["pid"])
+    except AssertionError as error:
+        raise AssertionError(f"{error}; the job's records as they changed: {seen[-10:]}") from None
     assert _ppid(pid) in {w.process.pid for w in workers}  # one of ours, never anything else
     os.kill(pid, signal.SIGKILL)
     return pid
