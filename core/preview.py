@@ -111,7 +111,8 @@ def vertex_displacement(original: np.ndarray, moved: np.ndarray) -> np.ndarray:
 
 def cluster_vertices(V: np.ndarray, F: np.ndarray, values: np.ndarray | None, max_triangles: int,
                      max_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Simplify by vertex clustering on a uniform grid, coarser until both caps hold.
+    """Simplify by vertex clustering on a uniform grid, coarser until both caps hold (on the
+    coarsest grid, 2 x 2 x 2 cells, the first ``max_triangles`` triangles are kept).
 
     Each occupied cell becomes one vertex at the mean of its vertices (carrying the largest of
     their ``values``); triangles whose corners fall in fewer than three cells vanish, and
@@ -145,6 +146,8 @@ def cluster_vertices(V: np.ndarray, F: np.ndarray, values: np.ndarray | None, ma
         f = cluster[F]
         f = _unique_triangles(f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])],
                               int(cluster.max(initial=0)) + 1)
+        if cells == 1:  # a 2 x 2 x 2 grid: at most 8 vertices; keep the first triangles that fit
+            f = f[:max_triangles]
         used = np.zeros(int(cluster.max(initial=0)) + 1, bool)
         used[f.ravel()] = True
         n_used = int(used.sum())

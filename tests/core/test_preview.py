@@ -158,3 +158,12 @@ def test_triangle_dedup_is_the_same_for_small_and_huge_vertex_counts(rows):
     small, huge = _unique_triangles(f, 10), _unique_triangles(f, 3_000_000)  # integer keys / raw rows
     np.testing.assert_array_equal(small, huge)
     assert len({tuple(sorted(t)) for t in rows}) == len(small)
+
+
+def test_cluster_vertices_caps_triangles_on_the_coarsest_grid():
+    """Two triangles that stay distinct on a 2 x 2 x 2 grid, with room for one: one is kept
+    (hypothesis found this case: the cap was not met once the grid could not get coarser)."""
+    V = np.array([[0.0, 0, 0], [3, 0, 0], [0, 3, 0], [0, 0, 3]])  # four corners, four cells
+    F = np.array([[0, 1, 2], [0, 1, 3]])
+    Vc, Fc, _ = cluster_vertices(V, F, np.zeros(4), max_triangles=1, max_vertices=1)
+    assert len(Fc) == 1 and len(Vc) == 3
