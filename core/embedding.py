@@ -20,7 +20,8 @@ from core.sync import Labels, vertex_labels
 from core.tolerances import TOL, Tolerances
 
 #: what storing positions in the file does to them (float32, printed decimals)
-Quantize = Callable[[np.ndarray], np.ndarray]
+#: ``quantize(mesh, vertex_indices, positions)``: what storing those vertices of that mesh gives
+Quantize = Callable[[int, np.ndarray, np.ndarray], np.ndarray]
 
 
 def target_positions(method: str, a: Analysis, v: np.ndarray, bits: np.ndarray, margin: float,
@@ -194,7 +195,7 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
             skipped[k][idx[~okm]] = True
             moved_v = new[okm]
             if quantize is not None:
-                moved_v = quantize(moved_v)
+                moved_v = quantize(k, idx[okm], moved_v)
             v[idx[okm]] = moved_v
             if labels[k].regular:
                 labels[k] = vertex_labels(v, adjs[k], labels[k])

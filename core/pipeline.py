@@ -4,14 +4,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import replace
-from functools import partial
 
 import numpy as np
 
 from core.analysis import Analysis, analyse_methods, prepare
 from core.coding import KEY_CODE_BITS, MAX_PAYLOAD_BITS, codeword_length, encode
 from core.detection import detect_analyses
-from core.embedding import embed_parts
+from core.embedding import Quantize, embed_parts
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, FORMATS, Limits, MeshDocument, MeshPart, read_mesh, weld
 from core.mesh import Adjacency, bbox_diagonal
@@ -184,6 +183,11 @@ class _ArrayDoc(MeshDocument):
         super().__init__(b"", parts)
 
 
+def _part_quantizer(doc: MeshDocument, parts: list[int], decimals: int | None) -> Quantize:
+    """The engine's quantize hook for the usable ``parts`` of ``doc`` (mesh k is part parts[k])."""
+    return lambda k, index, v: doc.quantize_part(parts[k], index, v, decimals)
+
+
 def embed_mesh(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, *, payload: str | None = None,
                method: str = DEFAULT_METHOD, strength: float | None = None) -> tuple[np.ndarray, EmbedReport]:
     """Array-level embedding.
@@ -286,7 +290,7 @@ def _embed_doc(doc: MeshDocument, options: Options,
         tol = replace(TOL, coarse_move=TOL.coarse_move * factor, max_local_move=TOL.max_local_move * factor,
                       max_move=TOL.max_move * factor)
         vs, stats, final = embed_parts(meshes, key, codeword, method, s, tol=tol, prepared=prepared,
-                                       quantize=partial(doc.quantize, decimals=dec))
+                                       quantize=_part_quantizer(doc, parts, dec))
         for k, i in enumerate(parts):
             new[i] = vs[k]
         carriers = sum(st.carriers for st in stats)
@@ -397,7 +401,7 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
     cw = rng.integers(0, 2, codeword_length(None)).astype(np.uint8)
     key = options.key if options.key is not None else _CAPACITY_KEY
     vs, stats, _ = embed_parts([(doc.parts[i].vertices, doc.parts[i].faces) for i in parts], key,
-                               cw, method, s, quantize=doc.quantize)
+                               cw, method, s, quantize=_part_quantizer(doc, parts, doc.decimals))
     for k, i in enumerate(parts):
         new[i] = vs[k]
         carriers += stats[k].carriers

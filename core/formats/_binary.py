@@ -57,7 +57,7 @@ def float32_xyz(vertices: np.ndarray) -> np.ndarray:
 
 
 def patch_xyz(buf: bytearray, offsets: np.ndarray, values: np.ndarray) -> None:
-    """Write float32 ``(x, y, z)`` triples into ``buf`` at byte ``offsets`` (in place).
+    """Write ``(x, y, z)`` triples into ``buf`` at byte ``offsets`` (in place), in their own dtype.
 
     Parameters
     ----------
@@ -65,11 +65,12 @@ def patch_xyz(buf: bytearray, offsets: np.ndarray, values: np.ndarray) -> None:
         Buffer to patch.
     offsets : (j,) int
         Byte offset of each triple (each ``offset + 12 <= len(buf)``).
-    values : (j, 3) float32, little-endian
-        New coordinates.
+    values : (j, 3) ndarray, little-endian
+        New stored components (float32, or the integer types of quantized glTF).
     """
     if len(offsets) == 0:
         return
     view = np.frombuffer(buf, dtype=np.uint8)
-    raw = np.ascontiguousarray(values, dtype="<f4").view(np.uint8).reshape(-1, 12)
-    view[np.asarray(offsets, dtype=np.int64)[:, None] + _XYZ_BYTES] = raw
+    raw = np.ascontiguousarray(values).view(np.uint8).reshape(len(offsets), -1)
+    width = raw.shape[1]
+    view[np.asarray(offsets, dtype=np.int64)[:, None] + _XYZ_BYTES[:width]] = raw

@@ -264,6 +264,12 @@ class MeshDocument:
             return v
         return np.round(v, d)
 
+    def quantize_part(self, part: int, index: np.ndarray, vertices: np.ndarray,
+                      decimals: int | None = None) -> np.ndarray:
+        """:meth:`quantize` for the vertices ``index`` of part ``part`` (formats whose parts or
+        vertices are stored on different grids, such as quantized glTF, override it)."""
+        return self.quantize(vertices, decimals)
+
     def write(self, vertices: list[np.ndarray], decimals: int | None = None) -> bytes:
         """Bytes of the same file with the parts' vertices at the new positions.
 

@@ -43,8 +43,16 @@ from typing import Any
 import numpy as np
 
 from core.errors import DegenerateMeshError, MeshFormatError
-from core.formats._binary import finite_float64, float32_xyz, moved_slots, patch_xyz
+from core.formats._binary import finite_float64, moved_slots, patch_xyz
 from core.formats.base import FormatSpec, Limits, MeshDocument, MeshPart, weld
+from core.formats.gltf_accessors import FLOAT, POSITION_DTYPES, Encoding
+from core.formats.gltf_codecs import (
+    DRACO_EXTENSION,
+    MESHOPT_EXTENSIONS,
+    decode_draco,
+    decode_meshopt,
+    meshopt_view,
+)
 
 GLB_MAGIC = b"glTF"
 CHUNK_JSON = 0x4E4F534A
@@ -52,12 +60,16 @@ CHUNK_BIN = 0x004E4942
 #: Deepest JSON nesting accepted (real glTF files need about 8).
 MAX_JSON_DEPTH = 64
 
-FLOAT = 5126
 _INDEX_DTYPES: dict[int, np.dtype] = {5121: np.dtype("<u1"), 5123: np.dtype("<u2"), 5125: np.dtype("<u4")}
 _TRIANGLE_MODES = (4, 5, 6)
 _SKIPPED_MODES = (0, 1, 2, 3)
-_COMPRESSION_EXTENSIONS = ("KHR_draco_mesh_compression", "EXT_meshopt_compression")
 _KEY_SHIFT = 40  # (buffer << 40) | byte offset identifies a stored position element
+#: buffer ids from here on are not buffers of the file: decoded meshopt views (+ view index),
+#: decoded Draco positions (+ 2**20 + primitive number) and positions with no storage at all
+#: (a sparse accessor's implicit zeros, ``UNSTORED``)
+VIRTUAL = 1 << 24
+_DRACO = VIRTUAL + (1 << 20)
+UNSTORED = VIRTUAL + (1 << 22)
 
 # a complete JSON string literal (unrolled loop: linear time, no backtracking)
 _STRING_RE = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"')
@@ -111,12 +123,12 @@ def read(data: bytes, limits: Limits, name: str) -> MeshDocument:
 
 
 class GltfDocument(MeshDocument):
-    """A parsed glTF file; :meth:`write` patches float32 positions in their buffers."""
+    """A parsed glTF file; :meth:`write` patches positions in their buffers, in their encoding."""
 
     encoding = "binary"
     media_type = "model/gltf-binary"
     extension = "glb"
-    storage_dtype = np.dtype(np.float32)
+    storage_dtype: np.dtype | None = np.dtype(np.float32)
 
     def __init__(
         self,
@@ -127,8 +139,11 @@ class GltfDocument(MeshDocument):
         text: str,
         json_chunk: tuple[int, int] | None,
         buffers: dict[int, tuple[bytes, int | None, str | None]],
-        slots: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-        positions: dict[int, tuple[int, int, int, int]],
+        slots: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+        positions: dict[int, tuple[np.ndarray, np.ndarray, int]],
+        encodings: list[Encoding],
+        meshopt: dict[int, Any],
+        draco: list[tuple[dict[str, Any], Any]],
     ) -> None:
         super().__init__(data, parts)
         self.format = "gltf" if json_chunk is None else "glb"
@@ -140,47 +155,83 @@ class GltfDocument(MeshDocument):
         self._buffers = buffers
         self._slots = slots
         self._positions = positions
+        self._encodings = encodings
+        self._meshopt = meshopt
+        self._draco = draco
+        #: position encodings of the file, e.g. ``["float32"]``, ``["uint16", "meshopt"]``
+        plain = {_encoding_name(encodings[e]) for _, _, e in positions.values()}
+        self.encodings = sorted(plain | ({"meshopt"} if meshopt else set()) | ({"draco"} if draco else set()))
+        if encodings and any(not e.is_float for e in encodings):
+            self.storage_dtype = None
+        # per part and welded vertex, the encoding its stored slots share (-1: no single one, or
+        # not writable), for quantize_part
+        self._vertex_encoding = []
+        for part, (bufs, _, enc, _) in zip(parts, slots, strict=True):
+            code = np.where(bufs >= UNSTORED, -1, enc)
+            if draco:
+                code = np.where((bufs >= _DRACO) & (bufs < UNSTORED), -1, code)
+            lo = np.full(len(part.vertices), np.iinfo(np.int64).max)
+            hi = np.full(len(part.vertices), -1)
+            np.minimum.at(lo, part.slot_to_vertex, code)
+            np.maximum.at(hi, part.slot_to_vertex, code)
+            self._vertex_encoding.append(np.where(lo == hi, lo, -1))
+
+    def quantize_part(self, part: int, index: np.ndarray, vertices: np.ndarray,
+                      decimals: int | None = None) -> np.ndarray:
+        """Positions of vertices ``index`` of part ``part`` as writing then reading gives them.
+
+        Each vertex goes to its accessor's grid (float32 or a quantized integer type); a vertex
+        that cannot be written (no storage, or slots of different encodings) keeps its position.
+        """
+        v = np.asarray(vertices, dtype=np.float64)
+        codes = self._vertex_encoding[part][np.asarray(index, dtype=np.int64)]
+        out = np.empty_like(v)
+        for code in np.unique(codes).tolist():
+            sel = codes == code
+            if code < 0:
+                out[sel] = self.parts[part].vertices[np.asarray(index)[sel]]
+            else:
+                out[sel] = self._encodings[code].quantize(v[sel])
+        return out
 
     def _patch(self, vertices: list[np.ndarray], moved: list[np.ndarray], decimals: int | None) -> bytes:
         new_buffers: dict[int, bytearray] = {}
-        for part, v, m, (buf_idx, offsets, writable) in zip(
+        for part, v, m, (buf_idx, offsets, encs, writable) in zip(
             self.parts, vertices, moved, self._slots, strict=True
         ):
             if m.size == 0:
                 continue
-            sel = moved_slots(part, m) & writable
+            sel = moved_slots(part, m) & writable & (buf_idx < UNSTORED)
             if not sel.any():
                 continue
-            values = float32_xyz(np.asarray(v, dtype=np.float64)[part.slot_to_vertex[sel]])
-            sel_buf, sel_off = buf_idx[sel], offsets[sel]
-            lo, hi = int(sel_buf.min()), int(sel_buf.max())
-            for b in [lo] if lo == hi else np.unique(sel_buf).tolist():
+            coords = np.asarray(v, dtype=np.float64)[part.slot_to_vertex[sel]]
+            sel_buf, sel_off, sel_enc = buf_idx[sel], offsets[sel], encs[sel]
+            for b, e in {(int(b), int(e)) for b, e in zip(sel_buf.tolist(), sel_enc.tolist(), strict=True)}:
                 if b not in new_buffers:
                     new_buffers[b] = bytearray(self._buffers[b][0])
-                if lo == hi:
-                    patch_xyz(new_buffers[b], sel_off, values)
-                else:
-                    here = sel_buf == b
-                    patch_xyz(new_buffers[b], sel_off[here], values[here])
+                here = (sel_buf == b) & (sel_enc == e)
+                patch_xyz(new_buffers[b], sel_off[here], self._encodings[e].encode(coords[here]))
         if not new_buffers:
             return self.data
 
         edits: list[tuple[str, int, str, str]] = []  # (section, index, member, new JSON text)
-        for acc_idx, (b, start, stride, count) in self._positions.items():
-            if b not in new_buffers:
+        for acc_idx, (bufs, offs, e) in self._positions.items():
+            if not any(int(b) in new_buffers for b in np.unique(bufs).tolist()):
                 continue
-            old = _strided_xyz(self._buffers[b][0], start, stride, count, copy=False)
-            new = _strided_xyz(new_buffers[b], start, stride, count, copy=False)
-            if np.array_equal(old.view("<u4"), new.view("<u4")):
+            enc = self._encodings[e]
+            old = _gather(self._buffers, {}, bufs, offs, enc)
+            new = _gather(self._buffers, new_buffers, bufs, offs, enc)
+            if np.array_equal(old.view(f"u{enc.dtype.itemsize}"), new.view(f"u{enc.dtype.itemsize}")):
                 continue
             acc = self._gltf["accessors"][acc_idx]
-            # column by column: much faster than a reduction over axis 0 of a (count, 3) array
-            low = np.array([new[:, c].min() for c in range(3)], dtype=np.float32)
-            high = np.array([new[:, c].max() for c in range(3)], dtype=np.float32)
+            low = np.array([new[:, c].min() for c in range(3)], dtype=enc.dtype)
+            high = np.array([new[:, c].max() for c in range(3)], dtype=enc.dtype)
             del old, new
             for key, ext in (("min", low), ("max", high)):
-                if key in acc and not _same_float32(acc[key], ext):
-                    edits.append(("accessors", acc_idx, key, _number_array(ext)))
+                if key in acc and not enc.same_json(acc[key], ext):
+                    edits.append(("accessors", acc_idx, key, enc.json_numbers(ext)))
+        if any(b >= VIRTUAL for b in new_buffers):
+            raise MeshFormatError("writing compressed (Draco or meshopt) positions back is not supported yet")
         for b, buf in new_buffers.items():
             _, _, uri_head = self._buffers[b]
             if uri_head is not None:
@@ -222,31 +273,29 @@ class GltfDocument(MeshDocument):
         return b"".join(pieces)
 
 
-def _strided_xyz(
-    buf: bytes | bytearray, start: int, stride: int, count: int, copy: bool = True
+def _encoding_name(enc: Encoding) -> str:
+    name = {"f": "float", "i": "int", "u": "uint"}[enc.dtype.kind] + str(8 * enc.dtype.itemsize)
+    return f"{name} normalized" if enc.normalized else name
+
+
+def _gather(
+    buffers: dict[int, tuple[bytes, int | None, str | None]],
+    patched: dict[int, bytearray],
+    bufs: np.ndarray,
+    offs: np.ndarray,
+    enc: Encoding,
 ) -> np.ndarray:
-    """``count`` float32 triples starting at ``start``, ``stride`` bytes apart (a copy, or a view)."""
-    arr = np.ndarray((count, 3), dtype="<f4", buffer=buf, offset=start, strides=(stride, 4))
-    return np.array(arr) if copy else arr
-
-
-def _same_float32(old: Any, new: np.ndarray) -> bool:
-    """Whether a JSON ``min``/``max`` value already equals ``new`` once stored as float32."""
-    if not isinstance(old, list) or len(old) != 3:
-        return False
-    if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in old):
-        return False
-    try:
-        stored = np.asarray(old, dtype=np.float64)
-    except OverflowError:
-        return False
-    with np.errstate(over="ignore"):
-        return bool(np.array_equal(stored.astype(np.float32), new))
-
-
-def _number_array(values: np.ndarray) -> str:
-    """JSON array of float32 values, each printed as its exact double (round-trips either way)."""
-    return "[" + ",".join(repr(float(x)) for x in np.asarray(values, dtype=np.float32)) + "]"
+    """Stored components (``(k, 3)`` of ``enc.dtype``) of elements at ``(bufs, offs)``; zeros
+    where an element has no storage."""
+    out = np.zeros((len(bufs), enc.element_size), dtype=np.uint8)
+    cols = np.arange(enc.element_size, dtype=np.int64)
+    for b in np.unique(bufs).tolist():
+        if b >= UNSTORED:
+            continue
+        here = bufs == b
+        raw = np.frombuffer(patched[b] if b in patched else buffers[b][0], dtype=np.uint8)
+        out[here] = raw[offs[here][:, None] + cols]
+    return out.view(enc.dtype).reshape(-1, 3)
 
 
 def _member_spans(text: str) -> dict[tuple[str, int, str], tuple[int, int]]:
@@ -374,6 +423,12 @@ class _Reader:
         self.glb_bin: tuple[int, int] | None = None  # (start, length) of the GLB BIN chunk data
         self.gltf: dict[str, Any] = {}
         self.buffer_data: dict[int, tuple[bytes, int | None, str | None]] = {}
+        self.decoded_bytes = 0  # bytes decoded from compressed views so far
+        self.meshopt: dict[int, Any] = {}  # view index -> its MeshoptView
+        self.draco: list[tuple[dict[str, Any], Any]] = []  # (primitive, DracoMesh)
+        self.encodings: list[Encoding] = []
+        self.total_slots = 0
+        self.unstored = 0  # running fake offsets of elements with no storage
 
     # ---------------------------------------------------------------- containers
     def read_glb(self) -> GltfDocument:
@@ -433,6 +488,8 @@ class _Reader:
                 raise MeshFormatError("must be an object", where)
             _as_int(buf, "byteLength", where, minimum=1)
             uri = buf.get("uri")
+            if uri is None and _is_fallback(buf):
+                continue  # a meshopt fallback buffer: its views are read from their compressed copy
             if uri is None:
                 if self.glb_bin is None or i != 0:
                     raise MeshFormatError("buffer has no uri (only GLB buffer 0, the BIN chunk, may)", where)
@@ -449,6 +506,8 @@ class _Reader:
         buf = self.gltf["buffers"][index]
         where = f"buffers[{index}]"
         uri = buf.get("uri")
+        if uri is None and _is_fallback(buf):
+            raise MeshFormatError("data read from a meshopt fallback buffer (it has no bytes)", where)
         if uri is None:
             assert self.glb_bin is not None
             start, n = self.glb_bin
@@ -468,18 +527,33 @@ class _Reader:
         self.buffer_data[index] = (raw, file_offset, head)
         return raw
 
-    def _layout(self, acc_index: int, elem_size: int, role: str) -> tuple[int, int, int, int]:
-        """Validated (buffer, byte offset, stride, count) of a plain accessor, nothing allocated."""
+    def _layout(
+        self, acc_index: int, elem_size: int, role: str, sparse_ok: bool = False
+    ) -> tuple[int, int, int, int]:
+        """Validated (buffer, byte offset, stride, count) of an accessor, nothing allocated.
+
+        A meshopt-compressed bufferView is decoded (limits checked first) into a virtual buffer.
+        With ``sparse_ok``, a sparse accessor's base is returned (buffer ``UNSTORED`` when it has
+        no bufferView, implicit zeros) and :meth:`_sparse` reads the substitutions.
+        """
         where = f"accessors[{acc_index}]"
         acc = _item(_as_list(self.gltf, "accessors", "accessors"), acc_index, "accessors", where)
-        if "sparse" in acc:
+        if "sparse" in acc and not sparse_ok:
             raise MeshFormatError(f"sparse {role} accessor is not supported", where)
-        if "bufferView" not in acc:
-            raise MeshFormatError(f"{role} accessor has no bufferView (compressed or empty data)", where)
         count = _as_int(acc, "count", where, minimum=1)
+        if "bufferView" not in acc:
+            if "sparse" in acc and sparse_ok:
+                return UNSTORED, 0, elem_size, count
+            raise MeshFormatError(f"{role} accessor has no bufferView (compressed or empty data)", where)
         acc_offset = _as_int(acc, "byteOffset", where, default=0)
+        b, start, stride = self._view_span(acc["bufferView"], acc_offset, elem_size, count, where)
+        return b, start, stride, count
+
+    def _view_span(
+        self, view_index: Any, offset: int, elem_size: int, count: int, where: str, packed: bool = False
+    ) -> tuple[int, int, int]:
+        """(buffer, byte offset, stride) of ``count`` elements from ``offset`` in a bufferView."""
         views = _as_list(self.gltf, "bufferViews", "bufferViews")
-        view_index = acc["bufferView"]
         view = _item(views, view_index, "bufferViews", where)
         vwhere = f"bufferViews[{view_index}]"
         buf = _item(_as_list(self.gltf, "buffers", "buffers"), view.get("buffer"), "buffers", vwhere)
@@ -487,43 +561,169 @@ class _Reader:
         view_offset = _as_int(view, "byteOffset", vwhere, default=0)
         view_length = _as_int(view, "byteLength", vwhere, minimum=1)
         stride = elem_size
-        if "byteStride" in view:
+        if "byteStride" in view and not packed:
             stride = _as_int(view, "byteStride", vwhere, minimum=4)
             if stride > 252 or stride < elem_size:
                 raise MeshFormatError(f"byteStride {stride} invalid for {elem_size}-byte elements", vwhere)
-        if acc_offset + (count - 1) * stride + elem_size > view_length:
+        if offset + (count - 1) * stride + elem_size > view_length:
             raise MeshFormatError(
-                f"{count} elements of stride {stride} from offset {acc_offset} overrun the "
+                f"{count} elements of stride {stride} from offset {offset} overrun the "
                 f"{view_length}-byte bufferView",
                 where,
             )
+        compressed = meshopt_view(view, vwhere)
+        if compressed is not None:
+            if compressed.count * compressed.stride < view_length:
+                raise MeshFormatError("meshopt stream decodes to fewer bytes than the bufferView", vwhere)
+            if compressed.mode == "ATTRIBUTES" and compressed.stride != stride:
+                raise MeshFormatError("meshopt byteStride differs from the bufferView's", vwhere)
+            self._decoded_view(view_index, compressed, vwhere)
+            return VIRTUAL + view_index, offset, stride
         if view_offset + view_length > buf["byteLength"]:
             raise MeshFormatError("bufferView runs past the end of its buffer", vwhere)
         if view_offset + view_length > len(self._buffer(buf_index)):
             raise MeshFormatError("bufferView runs past the stored buffer data", vwhere)
-        return buf_index, view_offset + acc_offset, stride, count
+        return buf_index, view_offset + offset, stride
+
+    def _decoded_view(self, view_index: int, ext: Any, where: str) -> None:
+        """Decode a meshopt-compressed view once, into virtual buffer ``VIRTUAL + view_index``."""
+        if VIRTUAL + view_index in self.buffer_data:
+            return
+        _item(_as_list(self.gltf, "buffers", "buffers"), ext.buffer, "buffers", where)
+        source = self._buffer(ext.buffer)
+        if ext.offset + ext.length > len(source):
+            raise MeshFormatError(f"{ext.extension} stream runs past its buffer", where)
+        self.decoded_bytes += ext.count * ext.stride
+        self.limits.check("bytes", self.decoded_bytes)
+        raw = decode_meshopt(ext, source[ext.offset : ext.offset + ext.length], self.limits, where)
+        self.buffer_data[VIRTUAL + view_index] = (raw, None, None)
+        self.meshopt[view_index] = ext
+
+    def _sparse(self, acc_index: int, count: int, elem_size: int) -> tuple[np.ndarray, int, int] | None:
+        """A sparse accessor's substituted element indices and where their values are stored."""
+        where = f"accessors[{acc_index}].sparse"
+        sparse = self.gltf["accessors"][acc_index].get("sparse")
+        if sparse is None:
+            return None
+        if not isinstance(sparse, dict):
+            raise MeshFormatError("must be an object", where)
+        n = _as_int(sparse, "count", where, minimum=1)
+        if n > count:
+            raise MeshFormatError(f"{n} sparse elements for an accessor of {count}", where)
+        indices, values = sparse.get("indices"), sparse.get("values")
+        if not isinstance(indices, dict) or not isinstance(values, dict):
+            raise MeshFormatError("sparse 'indices' and 'values' must be objects", where)
+        ctype = indices.get("componentType")
+        dtype = _INDEX_DTYPES.get(ctype) if type(ctype) is int else None
+        if dtype is None:
+            raise MeshFormatError("sparse indices must be UNSIGNED_BYTE/SHORT/INT", where)
+        ib, istart, _ = self._view_span(indices.get("bufferView"), _as_int(indices, "byteOffset", where, 0),
+                                        dtype.itemsize, n, where, packed=True)
+        vb, vstart, _ = self._view_span(values.get("bufferView"), _as_int(values, "byteOffset", where, 0),
+                                        elem_size, n, where, packed=True)
+        idx = np.frombuffer(self._buffer(ib), dtype=dtype, count=n, offset=istart).astype(np.int64)
+        if np.any(np.diff(idx) <= 0) or int(idx[-1]) >= count:
+            raise MeshFormatError("sparse indices must increase strictly and stay below the count", where)
+        return idx, vb, vstart
+
+    def _buffer_any(self, index: int) -> bytes:
+        """A buffer of the file or a decoded virtual one."""
+        return self.buffer_data[index][0] if index >= VIRTUAL else self._buffer(index)
+
+    def _position_slots(self, pos_index: int, awhere: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """Positions of a POSITION accessor (float64, mesh-local) and where each element is stored.
+
+        Returns
+        -------
+        positions : (k, 3) float64
+        buffers, offsets : (k,) int64
+            Buffer id and byte offset of each element's components.
+        encoding : int
+            Index into :attr:`encodings`.
+        """
+        acc = self.gltf["accessors"][pos_index]
+        ctype = acc.get("componentType")
+        dtype = POSITION_DTYPES.get(ctype) if type(ctype) is int else None
+        normalized = acc.get("normalized", False)
+        if dtype is None or acc.get("type") != "VEC3" or not isinstance(normalized, bool) or (
+            normalized and ctype == FLOAT
+        ):
+            raise MeshFormatError(
+                "POSITION accessor must be VEC3 of FLOAT or (KHR_mesh_quantization) BYTE, UNSIGNED_BYTE, "
+                "SHORT or UNSIGNED_SHORT, normalized or not (FLOAT never normalized)",
+                awhere,
+            )
+        enc = Encoding(dtype, normalized)
+        b, start, stride, count = self._layout(pos_index, enc.element_size, "POSITION", sparse_ok=True)
+        self.limits.check("vertices", self.total_slots + count)
+        bufs = np.full(count, b, dtype=np.int64)
+        if b == UNSTORED:
+            raw = np.zeros((count, 3), dtype=dtype)
+            offs = self.unstored + enc.element_size * np.arange(count, dtype=np.int64)
+            self.unstored += enc.element_size * count
+        else:
+            raw = np.ndarray((count, 3), dtype=dtype, buffer=self._buffer_any(b), offset=start,
+                             strides=(stride, dtype.itemsize))
+            offs = start + stride * np.arange(count, dtype=np.int64)
+        sparse = self._sparse(pos_index, count, enc.element_size)
+        if sparse is not None:
+            idx, vb, vstart = sparse
+            raw = np.array(raw)
+            values = np.frombuffer(self._buffer_any(vb), dtype=dtype, count=3 * len(idx), offset=vstart)
+            raw[idx] = values.reshape(-1, 3)
+            bufs[idx] = vb
+            offs[idx] = vstart + enc.element_size * np.arange(len(idx), dtype=np.int64)
+        positions = finite_float64(raw, awhere) if enc.is_float else enc.decode(raw)
+        return positions, bufs, offs, self._encoding_id(enc)
+
+    def _encoding_id(self, enc: Encoding) -> int:
+        if enc not in self.encodings:
+            self.encodings.append(enc)
+        return self.encodings.index(enc)
+
+    def _draco(self, prim: dict[str, Any], ext: Any, pwhere: str) -> tuple[np.ndarray, np.ndarray, int]:
+        """Positions, triangles and POSITION accessor of a KHR_draco_mesh_compression primitive."""
+        where = f"{pwhere}.extensions.{DRACO_EXTENSION}"
+        attributes = prim.get("attributes", {})
+        ids = ext.get("attributes") if isinstance(ext, dict) else None
+        if not isinstance(ids, dict) or not isinstance(ids.get("POSITION"), int):
+            raise MeshFormatError("Draco extension needs attributes.POSITION", where)
+        accessors = _as_list(self.gltf, "accessors", "accessors")
+        pos_index = attributes["POSITION"]
+        acc = _item(accessors, pos_index, "accessors", pwhere)
+        count = _as_int(acc, "count", f"accessors[{pos_index}]", minimum=1)
+        self.limits.check("vertices", self.total_slots + count)
+        n_indices = None
+        if "indices" in prim:
+            iacc = _item(accessors, prim["indices"], "accessors", pwhere)
+            n_indices = _as_int(iacc, "count", f"accessors[{prim['indices']}]", minimum=1)
+        view_index = ext.get("bufferView")
+        b, start, _ = self._view_span(view_index, 0, 1, 1, where, packed=True)
+        view = self.gltf["bufferViews"][view_index]
+        data = self._buffer_any(b)[start : start + view["byteLength"]]
+        mesh = decode_draco(bytes(data), ids["POSITION"], self.limits, where, count, n_indices)
+        vid = _DRACO + len(self.draco)
+        self.draco.append((prim, mesh))
+        self.buffer_data[vid] = (mesh.positions.astype("<f4").tobytes(), None, None)
+        return finite_float64(mesh.positions, where), mesh.faces, vid
 
     # ---------------------------------------------------------------- meshes
     def _document(self, text: str, json_chunk: tuple[int, int] | None) -> GltfDocument:
         gltf, limits = self.gltf, self.limits
-        required = gltf.get("extensionsRequired", [])
-        for ext in _COMPRESSION_EXTENSIONS:
-            if isinstance(required, list) and ext in required:
-                raise MeshFormatError(f"compressed meshes ({ext}) are not supported", "extensionsRequired")
         self._check_buffers()
         accessors = _as_list(gltf, "accessors", "accessors")
         meshes = _as_list(gltf, "meshes", "meshes")
         limits.check("meshes", len(meshes))
-        total_slots = total_faces = 0
+        total_faces = 0
         parts: list[MeshPart] = []
-        part_slots: list[tuple[np.ndarray, np.ndarray]] = []
-        positions: dict[int, tuple[int, int, int, int]] = {}
+        part_slots: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        positions: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}
         index_ranges: list[tuple[int, int, int]] = []
         for mi, mesh in enumerate(meshes):
             mwhere = f"meshes[{mi}]"
             if not isinstance(mesh, dict):
                 raise MeshFormatError("must be an object", mwhere)
-            pos_list, tri_list, buf_list, off_list = [], [], [], []
+            pos_list, tri_list, buf_list, off_list, enc_list = [], [], [], [], []
             n_slots = 0
             for pi, prim in enumerate(_as_list(mesh, "primitives", mwhere)):
                 pwhere = f"{mwhere}.primitives[{pi}]"
@@ -538,15 +738,26 @@ class _Reader:
                 if mode not in _TRIANGLE_MODES:
                     raise MeshFormatError(f"unknown primitive mode {mode}", pwhere)
                 pos_index = attributes["POSITION"]
-                acc = _item(accessors, pos_index, "accessors", pwhere)
+                _item(accessors, pos_index, "accessors", pwhere)
                 awhere = f"accessors[{pos_index}]"
-                ctype = acc.get("componentType")
-                float_vec3 = type(ctype) is int and ctype == FLOAT and acc.get("type") == "VEC3"
-                if not float_vec3 or acc.get("normalized"):
-                    raise MeshFormatError("POSITION accessor must be non-normalized FLOAT VEC3", awhere)
-                b, start, stride, count = self._layout(pos_index, 12, "POSITION")
-                total_slots += count
-                limits.check("vertices", total_slots)
+                prim_exts = prim.get("extensions")
+                draco = prim_exts.get(DRACO_EXTENSION) if isinstance(prim_exts, dict) else None
+                if draco is not None:
+                    pos, tri, vid = self._draco(prim, draco, pwhere)
+                    count = len(pos)
+                    self.total_slots += count
+                    total_faces += len(tri)
+                    limits.check("faces", total_faces)
+                    pos_list.append(pos)
+                    tri_list.append(tri + n_slots if n_slots else tri)
+                    buf_list.append(np.full(count, vid, dtype=np.int64))
+                    off_list.append(12 * np.arange(count, dtype=np.int64))
+                    enc_list.append(np.full(count, self._encoding_id(Encoding(np.dtype("<f4"))), np.int64))
+                    n_slots += count
+                    continue
+                pos, bufs, offs, enc_id = self._position_slots(pos_index, awhere)
+                count = len(pos)
+                self.total_slots += count
                 if "indices" in prim:
                     idx_index = prim["indices"]
                     iacc = _item(accessors, idx_index, "accessors", pwhere)
@@ -570,13 +781,13 @@ class _Reader:
                     total_faces += count // 3 if mode == 4 else max(count - 2, 0)
                     limits.check("faces", total_faces)
                     seq = np.arange(count, dtype=np.int64)
-                raw = self._buffer(b)
-                pos_list.append(finite_float64(_strided_xyz(raw, start, stride, count, copy=False), awhere))
+                pos_list.append(pos)
                 tri = _triangles(seq, mode)
                 tri_list.append(tri.astype(np.int64) + n_slots if n_slots else tri)
-                buf_list.append(np.full(count, b, dtype=np.int64))
-                off_list.append(start + stride * np.arange(count, dtype=np.int64))
-                positions[pos_index] = (b, start, stride, count)
+                buf_list.append(bufs)
+                off_list.append(offs)
+                enc_list.append(np.full(count, enc_id, dtype=np.int64))
+                positions[pos_index] = (bufs, offs, enc_id)
                 n_slots += count
             if not pos_list:
                 continue
@@ -590,10 +801,11 @@ class _Reader:
                     slot_to_vertex=slot_to_vertex,
                 )
             )
-            part_slots.append((_joined(buf_list), _joined(off_list)))
+            part_slots.append((_joined(buf_list), _joined(off_list), _joined(enc_list)))
         if not parts:
             raise DegenerateMeshError("no triangle mesh in the glTF file")
-        slots = _ownership(part_slots, index_ranges)
+        sizes = np.array([e.element_size for e in self.encodings], dtype=np.int64)
+        slots = _ownership(part_slots, index_ranges, sizes)
         return GltfDocument(
             self.data,
             parts,
@@ -603,39 +815,56 @@ class _Reader:
             buffers=self.buffer_data,
             slots=slots,
             positions=positions,
+            encodings=self.encodings,
+            meshopt=self.meshopt,
+            draco=self.draco,
         )
 
 
 def _ownership(
-    part_slots: list[tuple[np.ndarray, np.ndarray]], index_ranges: list[tuple[int, int, int]]
-) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Add to each part's slots a mask of those it writes: the first use of each stored element.
+    part_slots: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    index_ranges: list[tuple[int, int, int]],
+    sizes: np.ndarray,
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Add to each part's slots (buffer, offset, encoding) a mask of those it writes: the first
+    use of each stored element.
 
-    Refuses position elements that partly overlap each other or index data, so that patching
-    positions can never change another position or a face.
+    Refuses position elements that partly overlap each other (or one element read with two
+    encodings) or index data, so that patching positions can never change another position or
+    a face.  ``sizes``: bytes of an element of each encoding.
     """
-    buf = _joined([b for b, _ in part_slots])
-    off = _joined([o for _, o in part_slots])
+    buf = _joined([b for b, _, _ in part_slots])
+    off = _joined([o for _, o, _ in part_slots])
+    enc = _joined([e for _, _, e in part_slots])
     keys = (buf << _KEY_SHIFT) | off
     if keys.size < 2 or np.all(keys[1:] > keys[:-1]):  # the usual layout: already sorted, no repeats
         unique, first = keys, np.arange(keys.size)
     else:
         unique, first = np.unique(keys, return_index=True)
-    if np.any(np.diff(unique) < 12):
+    ends = unique + sizes[enc[first]]
+    if np.any(unique[1:] < ends[:-1]) or np.any(enc != enc[first][np.searchsorted(unique, keys)]):
         raise MeshFormatError("POSITION accessors overlap each other partially")
     for b, start, end in index_ranges:
-        lo = np.searchsorted(unique, (b << _KEY_SHIFT) + start - 11, side="left")
+        lo = np.searchsorted(unique, (b << _KEY_SHIFT) + start - 12, side="left")
         hi = np.searchsorted(unique, (b << _KEY_SHIFT) + end, side="left")
-        if hi > lo:
+        if np.any(ends[lo:hi] > (b << _KEY_SHIFT) + start):
             raise MeshFormatError("POSITION data overlaps index data")
     writable = np.zeros(keys.size, dtype=bool)
     writable[first] = True
     out = []
     at = 0
-    for part_buf, part_off in part_slots:
-        out.append((part_buf, part_off, writable[at : at + part_buf.size]))
+    for part_buf, part_off, part_enc in part_slots:
+        out.append((part_buf, part_off, part_enc, writable[at : at + part_buf.size]))
         at += part_buf.size
     return out
+
+
+def _is_fallback(buf: dict[str, Any]) -> bool:
+    """A buffer that only stands for the uncompressed size of meshopt-compressed views."""
+    exts = buf.get("extensions")
+    if not isinstance(exts, dict):
+        return False
+    return any(isinstance(exts.get(n), dict) and exts[n].get("fallback") is True for n in MESHOPT_EXTENSIONS)
 
 
 SPECS = (

@@ -425,7 +425,7 @@ def test_count_overruns_buffer_view_small_file() -> None:
         lambda m: m["buffers"][0].update(byteLength=4000),  # buffer past BIN chunk
         lambda m: m["bufferViews"][0].update(byteStride=8),  # stride < element
         lambda m: m["accessors"][0].update(sparse={"count": 1}),
-        lambda m: m["accessors"][0].update(componentType=5123),
+        lambda m: m["accessors"][0].update(componentType=5125),  # UNSIGNED_INT positions
         lambda m: m["accessors"][0].update(type="VEC2"),
         lambda m: m["accessors"][0].update(normalized=True),
         lambda m: m["accessors"][0].update(count=-1),
@@ -437,7 +437,7 @@ def test_count_overruns_buffer_view_small_file() -> None:
         lambda m: m["meshes"][0]["primitives"][0]["attributes"].update(POSITION=True),
         lambda m: m["bufferViews"][0].update(buffer=1),
         lambda m: m.update(meshes={"a": 1}),
-        lambda m: m.update(extensionsRequired=["KHR_draco_mesh_compression"]),
+        lambda m: m["accessors"][0].update(componentType=5126, normalized=True),
         lambda m: m["asset"].update(version="1.0"),
         lambda m: m["accessors"][1].update(bufferView=0, count=18),  # indices alias positions
         lambda m: m["accessors"].append(m["accessors"][0] | {"byteOffset": 4, "count": 5})
