@@ -25,6 +25,12 @@ EMBED_HEADERS: dict[str, str] = {
     "X-MeshMark-RMS-Displacement": "RMS vertex displacement / bounding-box diagonal.",
     "X-MeshMark-Max-Displacement": "Largest vertex displacement / bounding-box diagonal.",
     "X-MeshMark-Hausdorff": "Symmetric Hausdorff distance / bounding-box diagonal.",
+    "X-MeshMark-Skipped-Elements": "Elements of the file that are not triangles (faces of fewer than 3 "
+                                   "distinct corners, OBJ `l`/`p` lines, glTF point and line primitives): "
+                                   "not watermarked, written back untouched.",
+    "X-MeshMark-Reencoded": "Compressed encodings whose streams were re-encoded with the settings read "
+                            "from the file (`draco`, `meshopt`), comma-separated; `none` when every "
+                            "other byte was kept.",
     "X-MeshMark-Report": "The whole embedding report as compact JSON.",
 }
 
@@ -68,6 +74,8 @@ def embedded_result(embedded: EmbeddedFile, filename: str | None) -> Rendered:
         "X-MeshMark-RMS-Displacement": f"{report.rms_displacement:.6g}",
         "X-MeshMark-Max-Displacement": f"{report.max_displacement:.6g}",
         "X-MeshMark-Hausdorff": f"{report.hausdorff:.6g}",
+        "X-MeshMark-Skipped-Elements": str(report.skipped_elements),
+        "X-MeshMark-Reencoded": ",".join(report.reencoded) or "none",
         "X-MeshMark-Report": _json(report.to_dict()).decode("ascii"),
     }
     return Rendered(embedded.data, embedded.media_type, headers)

@@ -250,6 +250,7 @@ def embed(data: bytes, options: Options, *, filename: str | None = None, limits:
     report(Milestones.READ)
     new, rep, dec = _embed_doc(doc, options, report)
     out = doc.write(new, decimals=dec) if dec is not None else doc.write(new)
+    rep = replace(rep, skipped_elements=doc.skipped_elements, reencoded=list(doc.reencoded))
     report(1.0)
     spec = FORMATS[doc.format]
     return EmbeddedFile(out, rep, doc.format, spec.media_type, spec.extension)

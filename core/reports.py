@@ -40,6 +40,8 @@ class EmbedReport(_Report):
     decimals: int | None       # text formats: decimals printed for moved coordinates
     cap_factor: float          # displacement cap used, as a multiple of the default (coarse meshes)
     parts: list[dict[str, Any]] = field(default_factory=list)
+    skipped_elements: int = 0  # non-triangle elements of the file, carried through untouched
+    reencoded: list[str] = field(default_factory=list)  # compressed encodings re-encoded on write
 
 @dataclass(frozen=True)
 class DetectResult(_Report):

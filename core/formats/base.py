@@ -201,16 +201,17 @@ def fan_triangulate(counts: np.ndarray, indices: np.ndarray) -> np.ndarray:
 
     Returns
     -------
-    (sum(counts - 2), 3) int64 triangles.
+    (sum(max(counts - 2, 0)), 3) int64 triangles: a polygon of fewer than 3 corners (a point
+    or an edge written as a face, as some exporters do) gives none.
     """
     counts = np.asarray(counts, dtype=np.int64)
     indices = np.asarray(indices, dtype=np.int64)
     if counts.size == 0:
         return np.zeros((0, 3), np.int64)
-    if counts.min() < 3:
-        raise MeshFormatError("polygon with fewer than 3 corners")
+    if counts.min() < 0:
+        raise MeshFormatError("polygon with a negative number of corners")
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    ntri = counts - 2
+    ntri = np.maximum(counts - 2, 0)
     poly = np.repeat(np.arange(counts.size), ntri)
     k = np.arange(ntri.sum()) - np.repeat(np.cumsum(ntri) - ntri, ntri)
     s = starts[poly]
@@ -234,6 +235,13 @@ class MeshDocument:
     decimals : int or None
         Text formats: decimals used when printing moved coordinates (the most found in the
         source's vertex lines); ``None`` for binary formats and exponent notation.
+    skipped_elements : int
+        Elements of the file that give the engine no triangle and are carried through untouched:
+        faces of fewer than 3 distinct corners, OBJ ``l``/``p`` lines, glTF point and line
+        primitives.
+    reencoded : list of str
+        After :meth:`write`: the compressed encodings whose streams had to be re-encoded
+        (``"draco"``, ``"meshopt"``); empty when every other byte was kept.
     storage_dtype : numpy dtype or None
         Binary formats: dtype of stored coordinates (float32 mostly).
     """
@@ -242,6 +250,8 @@ class MeshDocument:
     encoding: str = ""
     decimals: int | None = None
     storage_dtype: np.dtype | None = None
+    skipped_elements: int = 0
+    reencoded: tuple[str, ...] = ()
 
     def __init__(self, data: bytes, parts: list[MeshPart]) -> None:
         self.data = data

@@ -144,8 +144,10 @@ class GltfDocument(MeshDocument):
         encodings: list[Encoding],
         meshopt: dict[int, Any],
         draco: list[tuple[dict[str, Any], Any]],
+        skipped: int = 0,
     ) -> None:
         super().__init__(data, parts)
+        self.skipped_elements = skipped
         self.format = "gltf" if json_chunk is None else "glb"
         if json_chunk is None:
             self.encoding, self.media_type, self.extension = "ascii", "model/gltf+json", "gltf"
@@ -428,6 +430,7 @@ class _Reader:
         self.draco: list[tuple[dict[str, Any], Any]] = []  # (primitive, DracoMesh)
         self.encodings: list[Encoding] = []
         self.total_slots = 0
+        self.skipped = 0  # point and line primitives, triangles that repeat a corner
         self.unstored = 0  # running fake offsets of elements with no storage
 
     # ---------------------------------------------------------------- containers
@@ -734,6 +737,7 @@ class _Reader:
                 if not isinstance(attributes, dict):
                     raise MeshFormatError("'attributes' must be an object", pwhere)
                 if mode in _SKIPPED_MODES or "POSITION" not in attributes:
+                    self.skipped += 1
                     continue
                 if mode not in _TRIANGLE_MODES:
                     raise MeshFormatError(f"unknown primitive mode {mode}", pwhere)
@@ -792,7 +796,9 @@ class _Reader:
             if not pos_list:
                 continue
             name = mesh.get("name")
-            vertices, faces, slot_to_vertex = weld(_joined(pos_list), _joined(tri_list))
+            triangles = _joined(tri_list)
+            vertices, faces, slot_to_vertex = weld(_joined(pos_list), triangles)
+            self.skipped += len(triangles) - len(faces)
             parts.append(
                 MeshPart(
                     name=name if isinstance(name, str) and name else f"mesh{mi}",
@@ -818,6 +824,7 @@ class _Reader:
             encodings=self.encodings,
             meshopt=self.meshopt,
             draco=self.draco,
+            skipped=self.skipped,
         )
 
 

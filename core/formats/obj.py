@@ -2,9 +2,11 @@
 
 Read: ``v`` lines (x y z, then optional w or colour components), ``f`` lines with any corner
 form (``1``, ``1/2``, ``1//3``, ``1/2/3``, negative = relative to the ``v`` lines read so far),
-polygons fan-triangulated.  ``vt``/``vn``/``o``/``g``/``s``/``mtllib``/``usemtl``, comments and
-any other statement are kept as text and never interpreted (material libraries are never
-opened).  The whole file is one part, named after its first ``o`` statement (else ``"mesh0"``).
+polygons fan-triangulated; faces of fewer than 3 distinct corners and ``l``/``p`` elements
+are skipped (counted in ``skipped_elements``) and kept as text.
+``vt``/``vn``/``o``/``g``/``s``/``mtllib``/``usemtl``, comments and any other statement are kept
+as text and never interpreted (material libraries are never opened).  The whole file is one
+part, named after its first ``o`` statement (else ``"mesh0"``).
 
 Write: only the ``v`` lines of moved vertices change, and on them only the x, y, z tokens.
 """
@@ -106,8 +108,9 @@ def read(data: bytes, limits: Limits, name: str = "obj") -> ObjDocument:
     Raises
     ------
     MeshFormatError
-        Non-numeric coordinate or index, fewer than 3 coordinates or corners, index 0 or out of
-        range, NaN/Inf coordinate.
+        Non-numeric coordinate or index, fewer than 3 coordinates, index 0 or out of range,
+        NaN/Inf coordinate.  Faces of fewer than 3 (distinct) corners and ``l``/``p`` lines are
+        skipped and counted (:attr:`~core.formats.base.MeshDocument.skipped_elements`).
     LimitExceededError
     """
     data = bytes(data)
@@ -115,6 +118,7 @@ def read(data: bytes, limits: Limits, name: str = "obj") -> ObjDocument:
     lines = split_lines(arr)
     vl = np.flatnonzero(keyword_mask(arr, lines, b"v"))
     fl = np.flatnonzero(keyword_mask(arr, lines, b"f"))
+    n_lines = int(np.count_nonzero(keyword_mask(arr, lines, b"l") | keyword_mask(arr, lines, b"p")))
     limits.check("vertices", int(vl.size))
     part_name = ""
     o_lines = np.flatnonzero(keyword_mask(arr, lines, b"o"))
@@ -142,10 +146,8 @@ def read(data: bytes, limits: Limits, name: str = "obj") -> ObjDocument:
     fblock = parse_block(ftext, int(fl.size), np.int64, fl, what="face vertex index")
     del ftext
     counts = fblock.counts
-    short = np.flatnonzero(counts < 3)
-    if short.size:
-        raise MeshFormatError("face with fewer than 3 corners", f"line {int(fl[short[0]]) + 1}")
-    limits.check("faces", int((counts - 2).sum()))
+    short = int(np.count_nonzero(counts < 3))  # points and edges written as faces: skipped
+    limits.check("faces", int(np.maximum(counts - 2, 0).sum()))
     idx = fblock.values
     del fblock
     # v lines before each face line, for relative (negative) indices
@@ -158,11 +160,13 @@ def read(data: bytes, limits: Limits, name: str = "obj") -> ObjDocument:
     del before, bad
     triangles = triangulate(counts, idx)
     del idx
+    n_triangles = len(triangles)
     vertices, faces, slot_to_vertex = weld(positions, triangles, copy=False)  # both are temporaries
 
     part = MeshPart(part_name or "mesh0", vertices, faces, slot_to_vertex)
     doc = ObjDocument(data, [part], slot_lines, mtllibs)
     doc.decimals = decimals
+    doc.skipped_elements = short + n_lines + n_triangles - len(faces)
     return doc
 
 

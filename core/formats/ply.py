@@ -247,6 +247,8 @@ def read(data: bytes, limits: Limits, name: str = "ply") -> PlyDocument:
             if k is not None and face.props[k].is_list:
                 index_prop = k
                 break
+        if index_prop is not None and face.props[index_prop].type[0] == "f":
+            raise MeshFormatError("PLY face vertex indices must be integers")
     doc = PlyDocument(data, [], encoding)
     doc.elements = [(e.name, e.count) for e in elements]
     if encoding == "ascii":
@@ -259,7 +261,7 @@ def read(data: bytes, limits: Limits, name: str = "ply") -> PlyDocument:
         if len(set(ctypes)) == 1:
             doc.storage_dtype = np.dtype(ctypes[0])
     check_finite(positions)
-    limits.check("faces", int((counts - 2).sum()) if counts.size else 0)
+    limits.check("faces", int(np.maximum(counts - 2, 0).sum()) if counts.size else 0)
     flat = np.asarray(flat, dtype=np.int64)
     if flat.size and (flat.min() < 0 or flat.max() >= vertex.count):
         bad = int(np.flatnonzero((flat < 0) | (flat >= vertex.count))[0])
@@ -267,8 +269,11 @@ def read(data: bytes, limits: Limits, name: str = "ply") -> PlyDocument:
         raise MeshFormatError("face vertex index out of range", f"face {face_no}")
     triangles = triangulate(counts, flat)
     del flat
+    n_triangles = len(triangles)
     vertices, faces, slot_to_vertex = weld(positions, triangles, copy=False)  # both are temporaries
     doc.parts = [MeshPart("mesh0", vertices, faces, slot_to_vertex)]
+    # faces of fewer than 3 corners, and triangles that repeat a corner, are skipped
+    doc.skipped_elements = int(np.count_nonzero(counts < 3)) + n_triangles - len(faces)
     return doc
 
 

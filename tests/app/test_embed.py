@@ -55,6 +55,16 @@ def test_report_headers_match_the_report(client, sphere_obj):
                         ("hausdorff", "hausdorff")]:
         assert float(h[f"x-meshmark-{name}"]) == pytest.approx(report[field], rel=1e-5)
     assert 0 < report["rms_displacement"] <= report["max_displacement"] < 0.05
+    assert int(h["x-meshmark-skipped-elements"]) == report["skipped_elements"] == 0
+    assert h["x-meshmark-reencoded"] == "none" and report["reencoded"] == []
+
+
+def test_skipped_elements_header(client, sphere_obj):
+    untidy = sphere_obj + b"f 1 2\nl 1 2 3\np 4\n"
+    response = embed(client, "sphere.obj", untidy)
+    assert response.status_code == 200, response.text
+    assert response.headers["x-meshmark-skipped-elements"] == "3"
+    assert response.content.endswith(b"f 1 2\nl 1 2 3\np 4\n")
 
 
 def test_key_in_header_and_planes_method(client, sphere_ply):

@@ -522,7 +522,8 @@ MALFORMED = {
     "obj-nan": ("a.obj", b"v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n", MeshFormatError),
     "obj-inf": ("a.obj", b"v 0 0 0\nv 1e999 0 0\nv 0 1 0\nf 1 2 3\n", MeshFormatError),
     "obj-two-coordinates": ("a.obj", b"v 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", MeshFormatError),
-    "obj-two-corners": ("a.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2\n", MeshFormatError),
+    "obj-two-corners-out-of-range": ("a.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 7\n",
+                                     MeshFormatError),  # a skipped face is still checked
     "obj-junk-number": ("a.obj", b"v 0 0 0\nv 1 0x1 0\nv 0 1 0\nf 1 2 3\n", MeshFormatError),
     "obj-slash-only": ("a.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 /3\n", MeshFormatError),
     "obj-nul": ("a.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\x00\n" + b"v 1 1 1\n", UnsupportedFormatError),
