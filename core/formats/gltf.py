@@ -38,6 +38,7 @@ import binascii
 import json
 import re
 import struct
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -49,8 +50,12 @@ from core.formats.gltf_accessors import FLOAT, POSITION_DTYPES, Encoding
 from core.formats.gltf_codecs import (
     DRACO_EXTENSION,
     MESHOPT_EXTENSIONS,
+    DracoGrid,
     decode_draco,
     decode_meshopt,
+    draco_grid,
+    encode_draco,
+    encode_meshopt,
     meshopt_view,
 )
 
@@ -143,7 +148,7 @@ class GltfDocument(MeshDocument):
         positions: dict[int, tuple[np.ndarray, np.ndarray, int]],
         encodings: list[Encoding],
         meshopt: dict[int, Any],
-        draco: list[tuple[dict[str, Any], Any]],
+        draco: list[_DracoPrimitive],
         skipped: int = 0,
     ) -> None:
         super().__init__(data, parts)
@@ -161,7 +166,8 @@ class GltfDocument(MeshDocument):
         self._meshopt = meshopt
         self._draco = draco
         #: position encodings of the file, e.g. ``["float32"]``, ``["uint16", "meshopt"]``
-        plain = {_encoding_name(encodings[e]) for _, _, e in positions.values()}
+        plain = {_encoding_name(encodings[e]) for _, _, e in positions.values()
+                 if not isinstance(encodings[e], DracoGrid)}
         self.encodings = sorted(plain | ({"meshopt"} if meshopt else set()) | ({"draco"} if draco else set()))
         if encodings and any(not e.is_float for e in encodings):
             self.storage_dtype = None
@@ -170,8 +176,9 @@ class GltfDocument(MeshDocument):
         self._vertex_encoding = []
         for part, (bufs, _, enc, _) in zip(parts, slots, strict=True):
             code = np.where(bufs >= UNSTORED, -1, enc)
-            if draco:
-                code = np.where((bufs >= _DRACO) & (bufs < UNSTORED), -1, code)
+            if draco:  # Draco positions whose grid could not be recovered cannot be re-encoded
+                gridded = np.array([isinstance(e, DracoGrid) for e in encodings])
+                code = np.where((bufs >= _DRACO) & (bufs < UNSTORED) & ~gridded[enc], -1, code)
             lo = np.full(len(part.vertices), np.iinfo(np.int64).max)
             hi = np.full(len(part.vertices), -1)
             np.minimum.at(lo, part.slot_to_vertex, code)
@@ -190,10 +197,16 @@ class GltfDocument(MeshDocument):
         out = np.empty_like(v)
         for code in np.unique(codes).tolist():
             sel = codes == code
+            old = self.parts[part].vertices[np.asarray(index)[sel]]
             if code < 0:
-                out[sel] = self.parts[part].vertices[np.asarray(index)[sel]]
-            else:
-                out[sel] = self._encodings[code].quantize(v[sel])
+                out[sel] = old
+                continue
+            enc = self._encodings[code]
+            out[sel] = enc.quantize(v[sel])
+            if isinstance(enc, DracoGrid):  # vertices at the extremes set the Draco grid: they stay
+                low = np.any(old <= np.asarray(enc.origin, np.float32), axis=1)
+                top = (old[:, enc.axis] >= enc.top) | low
+                out[np.flatnonzero(sel)[top]] = old[top]
         return out
 
     def _patch(self, vertices: list[np.ndarray], moved: list[np.ndarray], decimals: int | None) -> bytes:
@@ -233,7 +246,7 @@ class GltfDocument(MeshDocument):
                 if key in acc and not enc.same_json(acc[key], ext):
                     edits.append(("accessors", acc_idx, key, enc.json_numbers(ext)))
         if any(b >= VIRTUAL for b in new_buffers):
-            raise MeshFormatError("writing compressed (Draco or meshopt) positions back is not supported yet")
+            return self._reencode(new_buffers, edits)
         for b, buf in new_buffers.items():
             _, _, uri_head = self._buffers[b]
             if uri_head is not None:
@@ -273,6 +286,123 @@ class GltfDocument(MeshDocument):
             at = start + len(new_buffers[0])
         pieces.append(data[at:])
         return b"".join(pieces)
+
+
+    def _reencode(self, patched: dict[int, bytearray], edits: list[tuple[str, int, str, str]]) -> bytes:
+        """Write a file whose compressed streams changed: re-encode them, splice them into their
+        buffers (later data keeps its alignment) and serialise the JSON again."""
+        gltf = json.loads(json.dumps(self._gltf))
+        splices: dict[int, list[tuple[int, int, bytes]]] = {}
+        done: set[str] = set()
+        for b in sorted(b for b in patched if b >= VIRTUAL):
+            if b < _DRACO:
+                view_index = b - VIRTUAL
+                ext = self._meshopt[view_index]
+                source = self._buffers[ext.buffer][0]
+                stream = encode_meshopt(ext, bytes(patched[b]), source[ext.offset : ext.offset + ext.length])
+                splices.setdefault(ext.buffer, []).append((ext.offset, ext.length, stream))
+                gltf["bufferViews"][view_index]["extensions"][ext.extension]["byteLength"] = len(stream)
+                done.add("meshopt")
+            else:
+                d = self._draco[b - _DRACO]
+                assert isinstance(d.grid, DracoGrid)  # others are pinned by quantize_part
+                ext = d.primitive["extensions"][DRACO_EXTENSION]
+                positions = np.frombuffer(bytes(patched[b]), "<f4").reshape(-1, 3)
+                stream, semantics = encode_draco(d.mesh, ext["attributes"], positions, d.grid, d.header)
+                view = gltf["bufferViews"][d.view]
+                splices.setdefault(d.buffer, []).append((d.start, view["byteLength"], stream))
+                view["byteLength"] = len(stream)
+                path = self._primitive_path(d.primitive)
+                prim = gltf["meshes"][path[0]]["primitives"][path[1]]
+                prim["extensions"][DRACO_EXTENSION]["attributes"] = semantics
+                done.add("draco")
+        for section, index, key, new_text in edits:
+            gltf[section][index][key] = json.loads(new_text)
+        buffers = {b: bytes(buf) for b, buf in patched.items() if b < VIRTUAL}
+        for b, pieces in splices.items():
+            old = buffers.get(b, self._buffers[b][0])
+            buffers[b], moved = _spliced(old, pieces)
+            for view in gltf.get("bufferViews", []):
+                if view.get("buffer") == b:
+                    view["byteOffset"] = moved(view.get("byteOffset", 0))
+                for name in MESHOPT_EXTENSIONS:
+                    ext = (view.get("extensions") or {}).get(name)
+                    if isinstance(ext, dict) and ext.get("buffer") == b:
+                        ext["byteOffset"] = moved(ext.get("byteOffset", 0))
+            gltf["buffers"][b]["byteLength"] = len(buffers[b])
+        for b, buf in buffers.items():
+            uri_head = self._buffers[b][2]
+            if uri_head is not None:
+                gltf["buffers"][b]["uri"] = uri_head + "," + base64.b64encode(buf).decode("ascii")
+        self.reencoded = tuple(sorted(done))
+        text = json.dumps(gltf, separators=(",", ":"), ensure_ascii=False)
+        if self._json_chunk is None:
+            return text.encode("utf-8")
+        return _glb(self.data, text.encode("utf-8"), buffers.get(0))
+
+    def _primitive_path(self, primitive: dict[str, Any]) -> tuple[int, int]:
+        for mi, mesh in enumerate(self._gltf["meshes"]):
+            for pi, prim in enumerate(mesh["primitives"]):
+                if prim is primitive:
+                    return mi, pi
+        raise RuntimeError("Draco primitive not found")  # cannot happen: it comes from this JSON
+
+
+@dataclass(frozen=True)
+class _DracoPrimitive:
+    """A decoded Draco primitive and where its stream lives (for re-encoding)."""
+
+    primitive: dict[str, Any]
+    mesh: Any
+    view: int
+    buffer: int
+    start: int
+    grid: DracoGrid | None
+    header: bytes
+
+
+def _spliced(old: bytes, pieces: list[tuple[int, int, bytes]]) -> tuple[bytes, Any]:
+    """``old`` with the byte ranges ``(start, length)`` replaced, each new piece padded so that
+    the data after it moves by a multiple of 4; and the map from old offsets to new ones."""
+    pieces = sorted(pieces)
+    out, at, starts, shifts = [], 0, [], []
+    shift = 0
+    for start, length, new in pieces:
+        pad = (length - len(new)) % 4
+        out += [old[at:start], new, b"\0" * pad]
+        at = start + length
+        shift += len(new) + pad - length
+        starts.append(start + length)
+        shifts.append(shift)
+    out.append(old[at:])
+    ends = np.array(starts)
+    cumulative = np.array(shifts)
+
+    def moved(offset: int) -> int:
+        k = int(np.searchsorted(ends, offset, side="right"))
+        return offset + (int(cumulative[k - 1]) if k else 0)
+
+    return b"".join(out), moved
+
+
+def _glb(data: bytes, json_body: bytes, bin_body: bytes | None) -> bytes:
+    """A GLB like ``data`` with a new JSON chunk and, when given, a new BIN chunk (other chunks
+    and any bytes after the declared length are kept)."""
+    length = struct.unpack_from("<I", data, 8)[0]
+    json_body += b" " * (-len(json_body) % 4)
+    chunks = [struct.pack("<II", len(json_body), CHUNK_JSON) + json_body]
+    off, seen_bin = 12, False
+    off += 8 + struct.unpack_from("<I", data, 12)[0]
+    while off < length:
+        clen, ctype = struct.unpack_from("<II", data, off)
+        body = data[off + 8 : off + 8 + clen]
+        if ctype == CHUNK_BIN and not seen_bin and bin_body is not None:
+            body = bin_body + b"\0" * (-len(bin_body) % 4)
+        seen_bin |= ctype == CHUNK_BIN
+        chunks.append(struct.pack("<II", len(body), ctype) + body)
+        off += 8 + clen
+    out = b"".join(chunks)
+    return b"glTF" + struct.pack("<II", 2, 12 + len(out)) + out + data[length:]
 
 
 def _encoding_name(enc: Encoding) -> str:
@@ -427,7 +557,7 @@ class _Reader:
         self.buffer_data: dict[int, tuple[bytes, int | None, str | None]] = {}
         self.decoded_bytes = 0  # bytes decoded from compressed views so far
         self.meshopt: dict[int, Any] = {}  # view index -> its MeshoptView
-        self.draco: list[tuple[dict[str, Any], Any]] = []  # (primitive, DracoMesh)
+        self.draco: list[_DracoPrimitive] = []
         self.encodings: list[Encoding] = []
         self.total_slots = 0
         self.skipped = 0  # point and line primitives, triangles that repeat a corner
@@ -684,7 +814,7 @@ class _Reader:
             self.encodings.append(enc)
         return self.encodings.index(enc)
 
-    def _draco(self, prim: dict[str, Any], ext: Any, pwhere: str) -> tuple[np.ndarray, np.ndarray, int]:
+    def _draco(self, prim: dict[str, Any], ext: Any, pwhere: str) -> tuple[np.ndarray, np.ndarray, int, int]:
         """Positions, triangles and POSITION accessor of a KHR_draco_mesh_compression primitive."""
         where = f"{pwhere}.extensions.{DRACO_EXTENSION}"
         attributes = prim.get("attributes", {})
@@ -706,9 +836,12 @@ class _Reader:
         data = self._buffer_any(b)[start : start + view["byteLength"]]
         mesh = decode_draco(bytes(data), ids["POSITION"], self.limits, where, count, n_indices)
         vid = _DRACO + len(self.draco)
-        self.draco.append((prim, mesh))
+        positions = finite_float64(mesh.positions, where)
+        grid = draco_grid(mesh.positions)
+        self.draco.append(_DracoPrimitive(prim, mesh, view_index, b, start, grid, bytes(data[:12])))
         self.buffer_data[vid] = (mesh.positions.astype("<f4").tobytes(), None, None)
-        return finite_float64(mesh.positions, where), mesh.faces, vid
+        enc = self._encoding_id(grid if grid is not None else Encoding(np.dtype("<f4")))
+        return positions, mesh.faces, vid, enc
 
     # ---------------------------------------------------------------- meshes
     def _document(self, text: str, json_chunk: tuple[int, int] | None) -> GltfDocument:
@@ -747,7 +880,7 @@ class _Reader:
                 prim_exts = prim.get("extensions")
                 draco = prim_exts.get(DRACO_EXTENSION) if isinstance(prim_exts, dict) else None
                 if draco is not None:
-                    pos, tri, vid = self._draco(prim, draco, pwhere)
+                    pos, tri, vid, enc_id = self._draco(prim, draco, pwhere)
                     count = len(pos)
                     self.total_slots += count
                     total_faces += len(tri)
@@ -756,7 +889,8 @@ class _Reader:
                     tri_list.append(tri + n_slots if n_slots else tri)
                     buf_list.append(np.full(count, vid, dtype=np.int64))
                     off_list.append(12 * np.arange(count, dtype=np.int64))
-                    enc_list.append(np.full(count, self._encoding_id(Encoding(np.dtype("<f4"))), np.int64))
+                    enc_list.append(np.full(count, enc_id, np.int64))
+                    positions[pos_index] = (buf_list[-1], off_list[-1], enc_id)
                     n_slots += count
                     continue
                 pos, bufs, offs, enc_id = self._position_slots(pos_index, awhere)

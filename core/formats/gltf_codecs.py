@@ -25,6 +25,7 @@ import numpy as np
 
 from core.errors import MeshFormatError
 from core.formats.base import Limits
+from core.formats.gltf_accessors import Encoding
 
 MESHOPT_EXTENSIONS = ("EXT_meshopt_compression", "KHR_meshopt_compression")
 DRACO_EXTENSION = "KHR_draco_mesh_compression"
@@ -264,3 +265,156 @@ def decode_draco(data: bytes, position_id: int, limits: Limits, where: str,
     if tri.size and (tri.min() < 0 or tri.max() >= len(positions)):
         raise MeshFormatError("Draco face index out of range", where)
     return DracoMesh(positions, tri, attributes)
+
+
+@dataclass(frozen=True)
+class DracoGrid(Encoding):
+    """The quantization grid of a Draco primitive's positions: ``origin + q * delta`` per axis,
+    ``0 <= q <= qmax``, in float32 arithmetic as Draco's decoder computes it.
+
+    Draco writes the grid (origin, range, bits) into its stream; the decoder does not give them
+    back, so :func:`draco_grid` recovers them from the decoded positions and checks that every
+    position is reproduced exactly.
+    """
+
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    delta: float = 1.0
+    bits: int = 1
+    axis: int = 0  # the widest axis, whose extent sets the range
+
+    @property
+    def top(self) -> float:
+        """The largest coordinate on :attr:`axis`: a vertex there fixes the range and stays put."""
+        return float(np.float32(self.qmax) * np.float32(self.delta) + np.float32(self.origin[self.axis]))
+
+    @property
+    def qmax(self) -> int:
+        return (1 << self.bits) - 1
+
+    @property
+    def range(self) -> float:
+        """The quantization range that gives the same ``delta``."""
+        return float(np.float32(self.delta) * np.float32(self.qmax))
+
+    def encode(self, coords: np.ndarray) -> np.ndarray:
+        o, d = np.asarray(self.origin, np.float32), np.float32(self.delta)
+        q = np.clip(np.rint((np.asarray(coords, np.float64) - o) / float(d)), 0, self.qmax)
+        return (q.astype(np.float32) * d + o).astype("<f4")
+
+
+def draco_grid(positions: np.ndarray) -> DracoGrid | None:
+    """The Draco quantization grid that reproduces ``positions`` (float32) exactly, or ``None``.
+
+    The origin is the minimum per axis (the vertex quantized to 0); ``delta`` follows from the
+    widest axis, whose maximum is quantized to ``2**bits - 1``; the bits are estimated from the
+    smallest gap between coordinates and confirmed on every position.
+    """
+    p = np.asarray(positions, np.float32)
+    if len(p) == 0:
+        return None
+    o = p.min(axis=0)
+    ext = p.max(axis=0) - o
+    w = int(np.argmax(ext))
+    if ext[w] <= 0:
+        return None
+    col = np.unique(p[:, w])
+    gap = float(np.diff(col).min()) if len(col) > 1 else float(ext[w])
+    guess = int(np.clip(round(np.log2(float(ext[w]) / gap + 1)), 1, 30))
+    for bits in [guess, *range(guess + 1, 31), *range(guess - 1, 0, -1)]:
+        qmax = (1 << bits) - 1
+        delta = np.float32(np.float32(ext[w]) / np.float32(qmax))
+        if delta <= 0:
+            continue
+        origin = (float(o[0]), float(o[1]), float(o[2]))
+        grid = DracoGrid(np.dtype("<f4"), False, origin, float(delta), bits, w)
+        if np.float32(np.float32(grid.range) / np.float32(qmax)) != delta:
+            continue
+        if np.array_equal(grid.encode(p), p):
+            return grid
+    return None
+
+
+def encode_draco(mesh: DracoMesh, semantics: dict[str, int], positions: np.ndarray, grid: DracoGrid,
+                 header: bytes) -> tuple[bytes, dict[str, int]]:
+    """Re-encode a Draco primitive with new positions and the settings of its stream.
+
+    Positions go on the same grid (the origin is given to the encoder; the range is the same as
+    long as the widest axis keeps its extremes, which :meth:`DracoGrid` users pin); the
+    connectivity coder is the stream's (sequential, or edgebreaker with the valence traversal at
+    compression level 10, else level 7).  Texture coordinates keep their grid's bits where it can
+    be recovered (else 12), normals get 10 bits (glTF-Transform's and gltf-pipeline's default:
+    octahedral bits are not recoverable), other attributes are stored as decoded.
+
+    Parameters
+    ----------
+    semantics : dict
+        The extension's ``attributes``: glTF semantic -> Draco unique id.
+
+    Returns
+    -------
+    stream : bytes
+    semantics : dict
+        The same semantics with the unique ids of the new stream.
+
+    Raises
+    ------
+    MeshFormatError
+        An attribute DracoPy cannot store, or a re-encoding that would not read back as
+        ``positions``.
+    """
+    import DracoPy
+
+    by_id = {int(a["unique_id"]): a for a in mesh.attributes}
+    pos_id = semantics["POSITION"]
+    kwargs: dict[str, Any] = {}
+    generic: dict[int, np.ndarray] = {}
+    kinds: dict[int, str] = {}  # old unique id -> how it was passed
+    for uid, a in by_id.items():
+        if uid == pos_id:
+            continue
+        data = np.asarray(a["data"])
+        data = data.reshape(len(data), -1)
+        kind = {1: "normals", 2: "colors", 3: "tex_coord"}.get(int(a.get("attribute_type", 4)), "")
+        if kind == "normals" and data.shape[1] == 3 and "normals" not in kwargs:
+            kwargs["normals"], kwargs["normal_quantization_bits"] = data.astype(np.float64), 10
+        elif kind == "tex_coord" and data.shape[1] == 2 and "tex_coord" not in kwargs:
+            uv = data.astype(np.float64)
+            g = draco_grid(np.c_[uv, np.zeros(len(uv))].astype(np.float32))
+            kwargs["tex_coord"], kwargs["tex_coord_quantization_bits"] = uv, g.bits if g else 12
+        elif kind == "colors" and data.dtype == np.uint8 and "colors" not in kwargs:
+            kwargs["colors"] = data
+        elif data.dtype in (np.float32, np.uint8, np.uint16, np.uint32):
+            generic[uid], kind = data, "generic"
+        else:
+            raise MeshFormatError(f"Draco attribute {uid} of type {data.dtype} cannot be re-encoded")
+        kinds[uid] = kind
+    sequential = header[8] == 0
+    level = 10 if not sequential and len(header) > 11 and header[11] == 2 else 7
+    try:
+        stream = DracoPy.encode(
+            np.asarray(positions, np.float32), mesh.faces.astype(np.uint32), quantization_bits=grid.bits,
+            compression_level=level, quantization_origin=list(grid.origin), preserve_order=sequential,
+            generic_attributes=generic or None, **kwargs,
+        )
+        again = DracoPy.decode(stream)
+    except Exception as exc:
+        raise MeshFormatError(f"Draco re-encoding failed ({str(exc)[:200]})") from None
+    new = list(getattr(again, "attributes", []) or [])
+    types = {"normals": 1, "colors": 2, "tex_coord": 3}
+    new_ids: dict[int, int] = {}
+    for uid, kind in kinds.items():
+        if kind == "generic":
+            new_ids[uid] = uid
+        else:
+            new_ids[uid] = next(int(a["unique_id"]) for a in new if int(a["attribute_type"]) == types[kind])
+    new_pos = [a for a in new if int(a["unique_id"]) not in new_ids.values()]
+    if len(new_pos) != 1:
+        raise MeshFormatError("Draco re-encoding lost track of its attributes")
+    new_ids[pos_id] = int(new_pos[0]["unique_id"])
+    got = np.asarray(new_pos[0]["data"], np.float32)
+    want = np.asarray(positions, np.float32)
+    same = len(got) == len(want) and np.array_equal(
+        np.unique(got.view("V12").ravel()), np.unique(want.view("V12").ravel()))
+    if not same:
+        raise MeshFormatError("Draco re-encoding would not give the marked positions back")
+    return bytes(stream), {name: new_ids.get(uid, uid) for name, uid in semantics.items()}

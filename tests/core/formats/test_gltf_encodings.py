@@ -352,3 +352,70 @@ def test_quantized_real_mesh_embed_detect_keeps_encoding() -> None:
         assert json_of(out.data)["accessors"][0]["componentType"] == 5123
         found = detect_file(out.data, "key", filename="duck.glb", method=method)
         assert found.detected and found.payload == payload
+
+
+# ------------------------------------------------------------------------------ compressed write-back
+
+
+def moved_interior(doc: gltf.GltfDocument, step: float) -> list[np.ndarray]:
+    part = doc.parts[0]
+    v = part.vertices
+    inner = np.flatnonzero(np.all((v > v.min(axis=0)) & (v < v.max(axis=0)), axis=1))[::3]
+    new = v.copy()
+    new[inner] = doc.quantize_part(0, inner, v[inner] + step)
+    return [new]
+
+
+def test_meshopt_written_back_reencoded() -> None:
+    v, faces = grid()
+    data = meshopt_glb(v, faces, "KHR_meshopt_compression", 1)
+    doc = gltf.read(data, DEFAULT_LIMITS, "glb")
+    new = moved_interior(doc, 3.0)
+    out = doc.write(new)
+    assert doc.reencoded == ("meshopt",)
+    again = gltf.read(out, DEFAULT_LIMITS, "glb")
+    np.testing.assert_array_equal(again.parts[0].vertices, new[0])
+    np.testing.assert_array_equal(again.parts[0].faces, doc.parts[0].faces)
+    meta = json_of(out)
+    ext = meta["bufferViews"][0]["extensions"]["KHR_meshopt_compression"]
+    assert ext["mode"] == "ATTRIBUTES" and ext["byteStride"] == 8
+    body = out[-meta["buffers"][0]["byteLength"] :]
+    assert body[ext["byteOffset"]] == 0xA1  # the same vertex codec version
+    idx = meta["bufferViews"][1]["extensions"]["KHR_meshopt_compression"]
+    assert idx["byteOffset"] % 4 == 0
+
+
+def test_draco_written_back_reencoded_on_the_same_grid() -> None:
+    v, faces = grid()
+    data = draco_glb(v, faces)
+    doc = gltf.read(data, DEFAULT_LIMITS, "glb")
+    step = 2.6 / (2**14 - 1)
+    new = moved_interior(doc, 3 * step)
+    assert not np.array_equal(new[0], doc.parts[0].vertices)
+    out = doc.write(new)
+    assert doc.reencoded == ("draco",)
+    again = gltf.read(out, DEFAULT_LIMITS, "glb")
+    got = again.parts[0].vertices[again.parts[0].slot_to_vertex]
+    want = new[0][doc.parts[0].slot_to_vertex]
+    assert sorted(map(tuple, got.tolist())) == sorted(map(tuple, want.tolist()))
+
+
+def test_compressed_real_mesh_compress_embed_detect() -> None:
+    """Duck.glb compressed with Draco and with meshopt here, then marked: still compressed,
+    payload found, both methods."""
+    import DracoPy
+
+    src = gltf.read(shared_mesh_path("Duck.glb").read_bytes(), DEFAULT_LIMITS, "glb")
+    part = src.parts[0]
+    v, f = part.vertices, part.faces
+    payload = "1011001110001111"
+    draco = draco_glb(v, f, DracoPy.encode(v.astype(np.float32), f, quantization_bits=14))
+    lo, span = v.min(axis=0), float(np.ptp(v, axis=0).max())
+    meshopt = meshopt_glb((v - lo) / span * 15, f)
+    for data, kind in ((draco, "draco"), (meshopt, "meshopt")):
+        for method in ("ellipsoids", "planes"):
+            out = embed_file(data, "key", filename="duck.glb", payload=payload, method=method)
+            assert out.report.reencoded == [kind]
+            assert kind in gltf.read(out.data, DEFAULT_LIMITS, "glb").encodings
+            found = detect_file(out.data, "key", filename="duck.glb", method=method)
+            assert found.detected and found.payload == payload
