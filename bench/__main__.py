@@ -1,6 +1,7 @@
 """``python -m bench <suite>``: robustness, paper, false-positives, speed, summary, or all.
 
 ``formats`` and ``fuzz-formats`` (core.formats speed and fuzzing, issue 2) write ``formats.md``.
+``pipelines`` (issue 13) runs gltfpack and glTF-Transform on marked GLBs (``pipelines.md``).
 ``identical --write FILE`` / ``--check FILE`` fingerprints every engine answer on the shared meshes
 (byte-identity across refactorings).
 
@@ -86,6 +87,9 @@ def parser() -> argparse.ArgumentParser:
     # jobs backend suite (issue 7): needs Redis, starts Celery workers; not part of "all"
     sub.add_parser("redis", parents=[common], help="jobs through Redis + Celery vs the in-process pool")
     sub.add_parser("http", parents=[common], help="HTTP overhead against the CLI; 1 vs 2 workers")
+    # asset pipelines (issue 13): gltfpack and glTF-Transform from npm; not part of "all"
+    sub.add_parser("pipelines", parents=[common],
+                   help="gltfpack / glTF-Transform on marked GLBs, and marking their outputs")
     # byte-identity of every engine answer against a committed baseline (refactorings); not in "all"
     ident = sub.add_parser("identical", parents=[common],
                            help="fingerprint every engine answer on the shared meshes, or compare with one")
@@ -109,6 +113,12 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"[bench] {args.suite} done in {time.perf_counter() - t:.0f} s -> {Path(args.out) / 'formats.md'}"
         )
+        return 0
+    if args.suite == "pipelines":
+        from bench import pipelines
+
+        pipelines.run(args)
+        print(f"[bench] pipelines -> {Path(args.out) / 'pipelines.md'}")
         return 0
     if args.suite == "http":
         from bench import http_service

@@ -108,8 +108,78 @@ FIXED = [
 
 
 def mesh_files() -> list[Path]:
-    """Every mesh of the shared set (README.md, the set's description, is left out)."""
-    return sorted(p for p in meshes_dir().iterdir() if p.is_file() and p.suffix.lower() != ".md")
+    """Every mesh of the shared set (README.md, the set's description, is left out), and the
+    compressed and quantized GLBs of :func:`encoded_seeds`."""
+    shared = sorted(p for p in meshes_dir().iterdir() if p.is_file() and p.suffix.lower() != ".md")
+    return shared + encoded_seeds()
+
+
+def encoded_seeds() -> list[Path]:
+    """``Duck.glb`` re-stored as 14-bit USHORT positions (KHR_mesh_quantization), compressed
+    with EXT_meshopt_compression and with KHR_draco_mesh_compression: seeds for the decoders.
+    Written once, deterministically, next to the other temporary files."""
+    import DracoPy
+    import meshoptimizer
+
+    from core.formats import read_mesh
+
+    where = Path(os.environ.get("TMPDIR", "/tmp")) / "meshmark-fuzz-seeds"
+    names = [where / f"Duck.{k}.glb" for k in ("quantized", "meshopt", "draco")]
+    if all(p.is_file() for p in names):
+        return names
+    where.mkdir(parents=True, exist_ok=True)
+    part = read_mesh((meshes_dir() / "Duck.glb").read_bytes(), "Duck.glb").parts[0]
+    v, f = part.vertices, part.faces
+    q = np.rint((v - v.min(axis=0)) / float(np.ptp(v, axis=0).max()) * 16383).astype("<u2")
+    rows = np.zeros((len(v), 8), np.uint8)
+    rows[:, :6] = q.view(np.uint8).reshape(len(v), 6)
+    idx = f.astype("<u2").tobytes()
+
+    def glb(meta: dict[str, Any], blob: bytes) -> bytes:
+        text = json.dumps(meta).encode()
+        text += b" " * (-len(text) % 4)
+        blob += b"\0" * (-len(blob) % 4)
+        body = struct.pack("<II", len(text), 0x4E4F534A) + text
+        body += struct.pack("<II", len(blob), 0x004E4942) + blob
+        return b"glTF" + struct.pack("<II", 2, 12 + len(body)) + body
+
+    def accessors(pos_view: int | None, idx_view: int | None) -> list[dict[str, Any]]:
+        pos = {"componentType": 5123, "count": len(v), "type": "VEC3", "min": q.min(axis=0).tolist(),
+               "max": q.max(axis=0).tolist()}
+        ind = {"componentType": 5123, "count": f.size, "type": "SCALAR"}
+        return [{**pos, **({} if pos_view is None else {"bufferView": pos_view})},
+                {**ind, **({} if idx_view is None else {"bufferView": idx_view})}]
+
+    mesh = [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}]
+    quant = {"asset": {"version": "2.0"}, "meshes": mesh, "accessors": accessors(0, 1),
+             "bufferViews": [{"buffer": 0, "byteLength": rows.nbytes, "byteStride": 8},
+                             {"buffer": 0, "byteOffset": rows.nbytes, "byteLength": len(idx)}],
+             "buffers": [{"byteLength": rows.nbytes + len(idx)}]}
+    names[0].write_bytes(glb(quant, rows.tobytes() + idx))
+    meshoptimizer.encode_vertex_version(0)
+    meshoptimizer.encode_index_version(1)
+    cpos = meshoptimizer.encode_vertex_buffer(rows, len(v), 8)
+    cidx = meshoptimizer.encode_index_buffer(f.astype(np.uint32).ravel(), f.size, len(v))
+    at = len(cpos) + (-len(cpos) % 4)
+    ext = "EXT_meshopt_compression"
+    mo = {"asset": {"version": "2.0"}, "meshes": mesh, "accessors": accessors(0, 1), "bufferViews": [
+        {"buffer": 1, "byteLength": rows.nbytes, "byteStride": 8, "extensions": {ext: {
+            "buffer": 0, "byteLength": len(cpos), "byteStride": 8, "mode": "ATTRIBUTES", "count": len(v)}}},
+        {"buffer": 1, "byteOffset": rows.nbytes, "byteLength": len(idx), "extensions": {ext: {
+            "buffer": 0, "byteOffset": at, "byteLength": len(cidx), "byteStride": 2, "mode": "TRIANGLES",
+            "count": f.size}}}],
+        "buffers": [{"byteLength": at + len(cidx)},
+                    {"byteLength": rows.nbytes + len(idx), "extensions": {ext: {"fallback": True}}}]}
+    names[1].write_bytes(glb(mo, cpos + b"\0" * (at - len(cpos)) + cidx))
+    stream = DracoPy.encode(v.astype(np.float32), f, quantization_bits=14)
+    dr = {"asset": {"version": "2.0"}, "meshes": [{"primitives": [{
+        "attributes": {"POSITION": 0}, "indices": 1,
+        "extensions": {"KHR_draco_mesh_compression": {"bufferView": 0, "attributes": {"POSITION": 0}}}}]}],
+        "accessors": [{"componentType": 5126, "count": len(v), "type": "VEC3"},
+                      {"componentType": 5123, "count": f.size, "type": "SCALAR"}],
+        "bufferViews": [{"buffer": 0, "byteLength": len(stream)}], "buffers": [{"byteLength": len(stream)}]}
+    names[2].write_bytes(glb(dr, bytes(stream)))
+    return names
 
 
 # ---------------------------------------------------------------------------------------------
@@ -365,7 +435,7 @@ def _aliased(doc: Any) -> list[np.ndarray] | None:
     slots = getattr(doc, "_slots", None)
     if doc.format not in ("glb", "gltf") or slots is None:
         return None
-    keys = [(np.asarray(b, np.int64) << 40) | np.asarray(o, np.int64) for b, o, _ in slots]
+    keys = [(np.asarray(s[0], np.int64) << 40) | np.asarray(s[1], np.int64) for s in slots]
     every = np.concatenate(keys) if keys else np.zeros(0, np.int64)
     unique, counts = np.unique(every, return_counts=True)
     shared = unique[counts > 1]
@@ -387,7 +457,7 @@ def _compare(doc: Any, new: list[np.ndarray], again: Any) -> str:
     for i, (p, a, n) in enumerate(zip(doc.parts, again.parts, new, strict=True)):
         if a.slot_to_vertex.shape != p.slot_to_vertex.shape:
             return "finding:slots-changed-after-write"
-        want = doc.quantize(n)[p.slot_to_vertex] + 0.0
+        want = doc.quantize_part(i, np.arange(len(n)), n)[p.slot_to_vertex] + 0.0
         got = a.vertices[a.slot_to_vertex] + 0.0
         ok = np.all(want == got, axis=1)
         if aliased is not None:
@@ -415,6 +485,8 @@ def run_case(name: str, data: bytes) -> dict[str, Any]:
             pick = rng.random(len(v)) < 0.2
             v[pick] = np.where(v[pick] == 0, 1e-5, v[pick] * (1 - 1e-5))
             new.append(v)
+        if doc.format in ("glb", "gltf"):  # as the engine does: on each accessor's own grid
+            new = [doc.quantize_part(i, np.arange(len(v)), v) for i, v in enumerate(new)]
         written = doc.write(new)
         out["stage"] = "reread"
         again = read_mesh(written, name)

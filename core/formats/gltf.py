@@ -3,9 +3,11 @@
 What is read
 ------------
 Every mesh primitive of mode TRIANGLES (4, the default), TRIANGLE_STRIP (5) or TRIANGLE_FAN (6),
-indexed (UNSIGNED_BYTE/SHORT/INT) or not, whose ``POSITION`` accessor is a plain FLOAT VEC3
-accessor backed by a bufferView.  Strips and fans are converted to triangles for the engine;
-POINTS and LINES primitives (modes 0-3) are skipped.  One :class:`MeshPart` per glTF *mesh*
+indexed (UNSIGNED_BYTE/SHORT/INT) or not, with a VEC3 ``POSITION`` accessor: FLOAT, or
+(KHR_mesh_quantization) BYTE/UNSIGNED_BYTE/SHORT/UNSIGNED_SHORT normalized or not, plain or
+sparse, in a plain or meshopt-compressed bufferView, or a KHR_draco_mesh_compression primitive.
+Strips and fans are converted to triangles for the engine; POINTS and LINES primitives (modes
+0-3) are skipped and counted.  One :class:`MeshPart` per glTF *mesh*
 (name from ``mesh.name`` or ``"mesh{i}"``) combines its triangle primitives; positions are welded
 bit-exactly within the mesh (UV seams, split normals), and ``slot_to_vertex`` lists every
 ``POSITION`` element of every triangle primitive of the mesh, primitive after primitive.
@@ -17,18 +19,23 @@ What is refused
 ---------------
 Buffers whose URI is not an embedded ``data:...;base64,`` URI (relative or absolute paths,
 ``file:``, ``http(s):``...) are refused and never opened.  Image URIs are never looked at.
-Sparse or bufferView-less ``POSITION`` accessors (Draco, meshopt) are refused.  Every count,
-offset and stride is checked against its bufferView and buffer before anything is allocated, and
-JSON deeper than :data:`MAX_JSON_DEPTH` is refused before parsing.
+Positions may be quantized (KHR_mesh_quantization), sparse, meshopt- or Draco-compressed
+(``gltf_accessors.py``, ``gltf_codecs.py``; compressed streams checked against the limits
+before decoding).  Every count, offset and stride is checked against its bufferView and buffer
+before anything is allocated, and JSON deeper than :data:`MAX_JSON_DEPTH` is refused before
+parsing.
 
 Writing
 -------
-Moved coordinates are patched in place as float32 in their buffer: the GLB ``BIN`` chunk, or the
-re-encoded base64 payload of a ``data:`` URI.  The JSON text is kept byte for byte except the
-``min``/``max`` arrays of ``POSITION`` accessors whose extents changed (and re-encoded ``data:``
-URIs), which are rewritten in place; for GLB the JSON chunk is re-padded with spaces to 4 bytes
-and the chunk and total lengths are updated.  A position element used by several meshes (the same
-bytes reached through two accessors) is written once, from the first part that uses it.
+Moved coordinates are patched in place in their accessor's encoding (float32 or the quantized
+integer type) in their buffer: the GLB ``BIN`` chunk, or the re-encoded base64 payload of a
+``data:`` URI; compressed streams that hold moved positions are re-encoded, spliced into their
+buffer, and then the JSON is serialised again (:meth:`GltfDocument._reencode`).  Otherwise the
+JSON text is kept byte for byte except the ``min``/``max`` arrays of ``POSITION`` accessors
+whose extents changed (and re-encoded ``data:`` URIs), which are rewritten in place; for GLB the
+JSON chunk is re-padded with spaces to 4 bytes and the chunk and total lengths are updated.  A
+position element used by several meshes (the same bytes reached through two accessors) is
+written once, from the first part that uses it.
 """
 
 from __future__ import annotations
