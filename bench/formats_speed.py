@@ -275,17 +275,18 @@ TITLE = (
 
 
 def update_report(out_dir: Path, section: str, text: str) -> Path:
-    """Replace the ``section`` (``"speed"`` or ``"fuzz"``) of ``out_dir/formats.md`` with ``text``."""
+    """Replace the ``section`` (``"speed"``, ``"fuzz"`` or ``"fuzz-encoded"``) of
+    ``out_dir/formats.md`` with ``text``."""
     path = out_dir / REPORT
     old = path.read_text() if path.is_file() else TITLE
     sections: dict[str, str] = {}
-    for name in ("speed", "fuzz"):
+    for name in ("speed", "fuzz", "fuzz-encoded"):
         begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
         if begin in old and end in old:
             sections[name] = old[old.index(begin) + len(begin) : old.index(end)].strip("\n")
     sections[section] = text.strip("\n")
     body = [TITLE]
-    for name in ("speed", "fuzz"):
+    for name in ("speed", "fuzz", "fuzz-encoded"):
         if name in sections:
             body.append(f"<!-- {name}:begin -->\n{sections[name]}\n<!-- {name}:end -->\n")
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -315,13 +315,18 @@ class GltfDocument(MeshDocument):
                 assert isinstance(d.grid, DracoGrid)  # others are pinned by quantize_part
                 ext = d.primitive["extensions"][DRACO_EXTENSION]
                 positions = np.frombuffer(bytes(patched[b]), "<f4").reshape(-1, 3)
-                stream, semantics = encode_draco(d.mesh, ext["attributes"], positions, d.grid, d.header)
+                stream, semantics, points, faces = encode_draco(d.mesh, ext["attributes"], positions, d.grid,
+                                                                d.header)
                 view = gltf["bufferViews"][d.view]
                 splices.setdefault(d.buffer, []).append((d.start, view["byteLength"], stream))
                 view["byteLength"] = len(stream)
                 path = self._primitive_path(d.primitive)
                 prim = gltf["meshes"][path[0]]["primitives"][path[1]]
                 prim["extensions"][DRACO_EXTENSION]["attributes"] = semantics
+                for acc in prim["attributes"].values():  # points equal in every attribute merge
+                    gltf["accessors"][acc]["count"] = points
+                if "indices" in prim:
+                    gltf["accessors"][prim["indices"]]["count"] = 3 * faces
                 done.add("draco")
         for section, index, key, new_text in edits:
             gltf[section][index][key] = json.loads(new_text)

@@ -320,10 +320,12 @@ def draco_grid(positions: np.ndarray) -> DracoGrid | None:
     col = np.unique(p[:, w])
     gap = float(np.diff(col).min()) if len(col) > 1 else float(ext[w])
     guess = int(np.clip(round(np.log2(float(ext[w]) / gap + 1)), 1, 30))
+    # a step below a few float32 spacings of the largest coordinate is no grid an encoder reproduces
+    floor = 4 * float(np.spacing(np.abs(p).max()))
     for bits in [guess, *range(guess + 1, 31), *range(guess - 1, 0, -1)]:
         qmax = (1 << bits) - 1
         delta = np.float32(np.float32(ext[w]) / np.float32(qmax))
-        if delta <= 0:
+        if delta <= floor:
             continue
         origin = (float(o[0]), float(o[1]), float(o[2]))
         grid = DracoGrid(np.dtype("<f4"), False, origin, float(delta), bits, w)
@@ -335,7 +337,7 @@ def draco_grid(positions: np.ndarray) -> DracoGrid | None:
 
 
 def encode_draco(mesh: DracoMesh, semantics: dict[str, int], positions: np.ndarray, grid: DracoGrid,
-                 header: bytes) -> tuple[bytes, dict[str, int]]:
+                 header: bytes) -> tuple[bytes, dict[str, int], int, int]:
     """Re-encode a Draco primitive with new positions and the settings of its stream.
 
     Positions go on the same grid (the origin is given to the encoder; the range is the same as
@@ -355,6 +357,8 @@ def encode_draco(mesh: DracoMesh, semantics: dict[str, int], positions: np.ndarr
     stream : bytes
     semantics : dict
         The same semantics with the unique ids of the new stream.
+    points, faces : int
+        What the new stream decodes to (the encoder merges points equal in every attribute).
 
     Raises
     ------
@@ -390,6 +394,14 @@ def encode_draco(mesh: DracoMesh, semantics: dict[str, int], positions: np.ndarr
         kinds[uid] = kind
     sequential = header[8] == 0
     level = 10 if not sequential and len(header) > 11 and header[11] == 2 else 7
+    # edgebreaker merges points equal in every attribute, which would change the accessors: a
+    # stream that holds such points (no encoder writes them) is kept in order (sequential)
+    columns = [np.asarray(positions, np.float32), *generic.values(),
+               *(kwargs[k] for k in ("normals", "tex_coord", "colors") if k in kwargs)]
+    rows = np.concatenate([np.ascontiguousarray(c).view(np.uint8).reshape(len(c), -1) for c in columns],
+                          axis=1)
+    if len(np.unique(rows, axis=0)) < len(rows):
+        sequential = True
     try:
         stream = DracoPy.encode(
             np.asarray(positions, np.float32), mesh.faces.astype(np.uint32), quantization_bits=grid.bits,
@@ -413,8 +425,8 @@ def encode_draco(mesh: DracoMesh, semantics: dict[str, int], positions: np.ndarr
     new_ids[pos_id] = int(new_pos[0]["unique_id"])
     got = np.asarray(new_pos[0]["data"], np.float32)
     want = np.asarray(positions, np.float32)
-    same = len(got) == len(want) and np.array_equal(
-        np.unique(got.view("V12").ravel()), np.unique(want.view("V12").ravel()))
+    same = np.array_equal(np.unique(got.view("V12").ravel()), np.unique(want.view("V12").ravel()))
     if not same:
         raise MeshFormatError("Draco re-encoding would not give the marked positions back")
-    return bytes(stream), {name: new_ids.get(uid, uid) for name, uid in semantics.items()}
+    ids = {name: new_ids.get(uid, uid) for name, uid in semantics.items()}
+    return bytes(stream), ids, len(got), len(np.asarray(again.faces).reshape(-1, 3))

@@ -419,3 +419,37 @@ def test_compressed_real_mesh_compress_embed_detect() -> None:
             assert kind in gltf.read(out.data, DEFAULT_LIMITS, "glb").encodings
             found = detect_file(out.data, "key", filename="duck.glb", method=method)
             assert found.detected and found.payload == payload
+
+
+def test_draco_grid_refused_where_float32_cannot_hold_it() -> None:
+    """Fuzz case: a damaged stream decoded to coordinates near 6e17 whose 'grid' step was below
+    float32's spacing there; no grid is claimed, so those positions are never re-encoded."""
+    from core.formats.gltf_codecs import draco_grid
+
+    v, _ = grid()
+    huge = (v * 1e5 + 6e17).astype(np.float32)
+    assert draco_grid(huge) is None
+    step = np.float32(2.0 / 1023)
+    origin = v.min(axis=0).astype(np.float32)  # per axis, as Draco's quantizer
+    q = np.clip(np.rint((v - origin) / float(step)), 0, 1023).astype(np.float32)
+    on_grid = q * step + origin  # float32 arithmetic, as Draco's decoder
+    found = draco_grid(on_grid)
+    assert found is not None and found.bits <= 10
+    np.testing.assert_array_equal(found.encode(on_grid), on_grid)
+
+
+def test_draco_stream_with_repeated_points_keeps_its_accessors() -> None:
+    """Fuzz case: a stream whose points repeat (edgebreaker would merge them on re-encoding,
+    changing the accessor counts) is re-encoded in order instead: same slots after writing."""
+    import DracoPy
+
+    v, faces = grid()
+    v = v.copy()
+    v[5] = v[6]  # two points with the same position, in different triangles
+    stream = DracoPy.encode(v.astype(np.float32), faces, quantization_bits=14, preserve_order=True)
+    doc = gltf.read(draco_glb(v, faces, stream), DEFAULT_LIMITS, "glb")
+    new = moved_interior(doc, 3 * 2.6 / (2**14 - 1))
+    out = doc.write(new)
+    again = gltf.read(out, DEFAULT_LIMITS, "glb")
+    assert len(again.parts[0].slot_to_vertex) == len(doc.parts[0].slot_to_vertex)
+    assert json_of(out)["accessors"][0]["count"] == len(v)
