@@ -150,3 +150,21 @@ def test_too_large(sphere_obj, sphere_ply):
         # 97 kB but 2562 vertices
         body = assert_problem(embed(small, "sphere.ply", sphere_ply), 413, "too-large")
         assert (body["what"], body["value"], body["limit"]) == ("vertices", 2562, 1000)
+
+
+def test_reencoded_header_for_a_draco_glb(client):
+    """A Draco-compressed GLB comes back Draco-compressed, and the answer says it was re-encoded."""
+    import DracoPy
+    import numpy as np
+
+    from core.formats import read_mesh
+    from tests.core.formats.test_gltf_encodings import draco_glb
+
+    part = read_mesh(shared_mesh("Duck.glb"), "Duck.glb").parts[0]
+    stream = DracoPy.encode(part.vertices.astype(np.float32), part.faces, quantization_bits=14)
+    data = draco_glb(part.vertices, part.faces, stream)
+    response = embed(client, "duck.glb", data)
+    assert response.status_code == 200, response.text
+    assert response.headers["x-meshmark-reencoded"] == "draco"
+    assert b"KHR_draco_mesh_compression" in response.content[:4096]
+    assert detect(client, "duck.glb", response.content).json()["detected"]
