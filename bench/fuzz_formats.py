@@ -104,6 +104,18 @@ FIXED = [
         "`core/formats/_text.py` `patch_lines`: tokens end at a `#`, as for the readers",
         "`tests/core/formats/test_text_glued_comments.py`",
     ),
+    (
+        "`--meshes Duck.quantized.glb Duck.meshopt.glb Duck.draco.glb --cases 5000`",
+        "1829, 2798, 2963, 4151 (`Duck.draco.glb`, bytes inserted or duplicated in the stream); 1979",
+        "MeshFormatError at write, 'Draco re-encoding would not give the marked positions back': the "
+        "damaged streams still decoded, with repeated points (edgebreaker merged them when re-encoding) "
+        "or, in 1979, coordinates near 6e17 on a 'grid' finer than float32 holds there",
+        "`core/formats/gltf_codecs.py`: streams with repeated points are re-encoded in order (sequential), "
+        "accessor counts follow the new stream, and no grid below four float32 spacings is claimed (such "
+        "positions are never moved)",
+        "`tests/core/formats/test_gltf_encodings.py` (`test_draco_stream_with_repeated_points_...`, "
+        "`test_draco_grid_refused_where_...`)",
+    ),
 ]
 
 
