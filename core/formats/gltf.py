@@ -831,7 +831,7 @@ class _Reader:
         where = f"{pwhere}.extensions.{DRACO_EXTENSION}"
         attributes = prim.get("attributes", {})
         ids = ext.get("attributes") if isinstance(ext, dict) else None
-        if not isinstance(ids, dict) or not isinstance(ids.get("POSITION"), int):
+        if not isinstance(ids, dict) or type(ids.get("POSITION")) is not int or ids["POSITION"] < 0:
             raise MeshFormatError("Draco extension needs attributes.POSITION", where)
         accessors = _as_list(self.gltf, "accessors", "accessors")
         pos_index = attributes["POSITION"]
@@ -844,6 +844,8 @@ class _Reader:
             n_indices = _as_int(iacc, "count", f"accessors[{prim['indices']}]", minimum=1)
         view_index = ext.get("bufferView")
         b, start, _ = self._view_span(view_index, 0, 1, 1, where, packed=True)
+        if b >= VIRTUAL:
+            raise MeshFormatError("a Draco stream in a meshopt-compressed bufferView", where)
         view = self.gltf["bufferViews"][view_index]
         data = self._buffer_any(b)[start : start + view["byteLength"]]
         mesh = decode_draco(bytes(data), ids["POSITION"], self.limits, where, count, n_indices)

@@ -453,3 +453,21 @@ def test_draco_stream_with_repeated_points_keeps_its_accessors() -> None:
     again = gltf.read(out, DEFAULT_LIMITS, "glb")
     assert len(again.parts[0].slot_to_vertex) == len(doc.parts[0].slot_to_vertex)
     assert json_of(out)["accessors"][0]["count"] == len(v)
+
+
+@settings(max_examples=200, deadline=None)
+@given(kind=st.sampled_from(QUANTIZED), values=st.lists(st.floats(-300, 70000, allow_nan=False), min_size=3,
+                                                        max_size=30))
+def test_quantize_is_what_storing_gives(kind: Any, values: list[float]) -> None:
+    """Encoding.quantize is idempotent and equals reading back the stored components."""
+    from core.formats.gltf_accessors import Encoding
+
+    _, dtype, normalized, dequant = kind
+    enc = Encoding(np.dtype(dtype), normalized)
+    v = np.array(values[: len(values) // 3 * 3], np.float64).reshape(-1, 3)
+    if normalized:
+        v = v / 70000.0
+    stored = enc.encode(v)
+    assert stored.dtype == np.dtype(dtype)
+    np.testing.assert_array_equal(enc.quantize(v), dequant(stored.astype(np.float64)))
+    np.testing.assert_array_equal(enc.quantize(enc.quantize(v)), enc.quantize(v))
