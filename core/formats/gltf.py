@@ -323,7 +323,8 @@ class GltfDocument(MeshDocument):
                 path = self._primitive_path(d.primitive)
                 prim = gltf["meshes"][path[0]]["primitives"][path[1]]
                 prim["extensions"][DRACO_EXTENSION]["attributes"] = semantics
-                for acc in prim["attributes"].values():  # points equal in every attribute merge
+                # edgebreaker merges points equal in every attribute: the accessors follow the stream
+                for acc in prim["attributes"].values():
                     gltf["accessors"][acc]["count"] = points
                 if "indices" in prim:
                     gltf["accessors"][prim["indices"]]["count"] = 3 * faces

@@ -394,14 +394,6 @@ def encode_draco(mesh: DracoMesh, semantics: dict[str, int], positions: np.ndarr
         kinds[uid] = kind
     sequential = header[8] == 0
     level = 10 if not sequential and len(header) > 11 and header[11] == 2 else 7
-    # edgebreaker merges points equal in every attribute, which would change the accessors: a
-    # stream that holds such points (no encoder writes them) is kept in order (sequential)
-    columns = [np.asarray(positions, np.float32), *generic.values(),
-               *(kwargs[k] for k in ("normals", "tex_coord", "colors") if k in kwargs)]
-    rows = np.concatenate([np.ascontiguousarray(c).view(np.uint8).reshape(len(c), -1) for c in columns],
-                          axis=1)
-    if len(np.unique(rows, axis=0)) < len(rows):
-        sequential = True
     try:
         stream = DracoPy.encode(
             np.asarray(positions, np.float32), mesh.faces.astype(np.uint32), quantization_bits=grid.bits,
