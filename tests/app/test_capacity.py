@@ -30,8 +30,11 @@ def test_capacity_grows_with_strength(client, sphere_obj):
 
 def test_capacity_needs_no_key_but_a_mesh(client):
     assert_problem(client.post("/v1/capacity", files={"method": (None, "planes")}), 422, "bad-form")
-    assert_problem(client.post("/v1/capacity", files={"mesh": ("s.obj", b"v 0 0 0\nf 1 1\n")}), 422,
+    assert_problem(client.post("/v1/capacity", files={"mesh": ("s.obj", b"v 0 0 0\nf 1 1 9\n")}), 422,
                    "malformed-mesh")
+    # a two-corner face is skipped (untidy, not broken): then no triangle is left
+    assert_problem(client.post("/v1/capacity", files={"mesh": ("s.obj", b"v 0 0 0\nf 1 1\n")}), 422,
+                   "degenerate-mesh")
 
 
 def test_with_the_key_capacity_counts_the_carriers_embedding_will_have(client):
