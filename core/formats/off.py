@@ -86,7 +86,8 @@ def read(data: bytes, limits: Limits, name: str = "off") -> OffDocument:
     ------
     MeshFormatError
         Bad header or counts, fewer lines than declared, non-numeric value, index out of range,
-        polygon of fewer than 3 corners, NaN/Inf coordinate.
+        a corner count that is negative, fractional or larger than the line, NaN/Inf coordinate.
+        Faces of fewer than 3 corners are skipped and counted (``skipped_elements``).
     LimitExceededError
     """
     data = bytes(data)
@@ -145,12 +146,12 @@ def read(data: bytes, limits: Limits, name: str = "off") -> OffDocument:
     del ftext
     ncorner = fb.values[fb.offsets] if nf else np.zeros(0)
     bad = np.flatnonzero(
-        (ncorner != np.floor(ncorner)) | (ncorner < 3) | (ncorner > fb.counts - 1)
+        (ncorner != np.floor(ncorner)) | (ncorner < 0) | (ncorner > fb.counts - 1)
     )
     if bad.size:
         raise MeshFormatError("bad face corner count", f"line {int(fl[bad[0]]) + 1}")
     ncorner = ncorner.astype(np.int64)
-    limits.check("faces", int((ncorner - 2).sum()))
+    limits.check("faces", int(np.maximum(ncorner - 2, 0).sum()))
     idx = ragged_take(fb.values, fb.offsets + 1, ncorner)
     badi = np.flatnonzero((idx != np.floor(idx)) | (idx < 0) | (idx >= nv))
     if badi.size:
@@ -158,9 +159,12 @@ def read(data: bytes, limits: Limits, name: str = "off") -> OffDocument:
         raise MeshFormatError("face vertex index out of range", f"line {int(fl[face]) + 1}")
     del fb
     triangles = triangulate(ncorner, idx.astype(np.int64))
+    n_triangles = len(triangles)
     vertices, faces, slot_to_vertex = weld(positions, triangles, copy=False)  # both are temporaries
     doc = OffDocument(data, [MeshPart("mesh0", vertices, faces, slot_to_vertex)], slot_lines)
     doc.decimals = decimals
+    # faces of fewer than 3 corners (points, edges) and triangles that repeat a corner: skipped
+    doc.skipped_elements = int(np.count_nonzero(ncorner < 3)) + n_triangles - len(faces)
     return doc
 
 

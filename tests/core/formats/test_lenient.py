@@ -77,6 +77,14 @@ def test_ply_mixed_polygons_with_short_faces(binary: bool) -> None:
     assert len(out) == len(data) if binary else True
 
 
+def test_off_points_and_edges_are_skipped() -> None:
+    data = b"OFF\n4 4 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 1 2\n2 0 3\n1 3\n4 0 1 3 2\n"
+    doc = read_mesh(data, "a.off")
+    assert len(doc.parts[0].faces) == 3 and doc.skipped_elements == 2
+    with pytest.raises(MeshFormatError):
+        read_mesh(b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n-1 0 1 2\n", "a.off")
+
+
 def test_truly_broken_files_are_still_refused() -> None:
     with pytest.raises(MeshFormatError):
         read_mesh(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nl 1 9\nf 1 9\n", "a.obj")
