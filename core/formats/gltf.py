@@ -946,7 +946,10 @@ class _Reader:
                 continue
             name = mesh.get("name")
             triangles = _joined(tri_list)
-            vertices, faces, slot_to_vertex = weld(_joined(pos_list), triangles)
+            stored = _joined(pos_list)
+            if len(self.draco) > 1:
+                stored = _draco_seams(stored, _joined(buf_list), _joined(enc_list), self.encodings)
+            vertices, faces, slot_to_vertex = weld(stored, triangles)
             self.skipped += len(triangles) - len(faces)
             parts.append(
                 MeshPart(
@@ -1012,6 +1015,53 @@ def _ownership(
     for part_buf, part_off, part_enc in part_slots:
         out.append((part_buf, part_off, part_enc, writable[at : at + part_buf.size]))
         at += part_buf.size
+    return out
+
+
+def _draco_seams(positions: np.ndarray, bufs: np.ndarray, encs: np.ndarray,
+                 encodings: list[Encoding]) -> np.ndarray:
+    """Positions with the seams between a mesh's Draco primitives closed.
+
+    Each primitive is quantized on its own grid, so a vertex that two primitives share (a
+    material border) is stored at two positions up to a grid step apart, and the bit-exact weld
+    would cut the mesh there.  A point of one primitive within ``sqrt(3)`` grid steps of points of
+    other primitives takes the position of the first of them (never two points of one primitive
+    together).  Such seam vertices have slots of two encodings, so ``quantize_part`` keeps them
+    in place and writing never moves them.
+    """
+    draco = (bufs >= _DRACO) & (bufs < UNSTORED)
+    idx = np.flatnonzero(draco)
+    if np.unique(bufs[idx]).size < 2:
+        return positions
+    grids = [encodings[k] for k in np.unique(encs[idx]).tolist()]
+    steps = [e.delta for e in grids if isinstance(e, DracoGrid)]
+    if not steps:
+        return positions
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pts = positions[idx]
+    pairs = cKDTree(pts).query_pairs(r=float(np.sqrt(3.0) * max(steps)), output_type="ndarray")
+    prim = bufs[idx]
+    pairs = pairs[prim[pairs[:, 0]] != prim[pairs[:, 1]]]
+    if pairs.size == 0:
+        return positions
+    n = len(idx)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    order = np.lexsort((np.arange(n), label))
+    first = np.empty(label.max() + 1, np.int64)
+    first[label[order[::-1]]] = order[::-1]  # the smallest index of each component
+    # within a component, each primitive's points must be one position (a UV seam repeats it)
+    by = np.lexsort((prim, label))
+    same_group = (label[by][1:] == label[by][:-1]) & (prim[by][1:] == prim[by][:-1])
+    differ = np.any(pts[by][1:] != pts[by][:-1], axis=1) & same_group
+    ok = np.bincount(label, minlength=label.max() + 1) > 1
+    ok[label[by][1:][differ]] = False
+    snap = ok[label]
+    out = positions.copy()
+    out[idx[snap]] = pts[first[label[snap]]]
     return out
 
 
