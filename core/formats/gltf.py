@@ -181,7 +181,8 @@ class GltfDocument(MeshDocument):
         # per part and welded vertex, the encoding its stored slots share (-1: no single one, or
         # not writable), for quantize_part
         self._vertex_encoding = []
-        for part, (bufs, _, enc, _) in zip(parts, slots, strict=True):
+        self._draco_pins: list[np.ndarray] = []
+        for part, (bufs, offs, enc, _) in zip(parts, slots, strict=True):
             code = np.where(bufs >= UNSTORED, -1, enc)
             if draco:  # Draco positions whose grid could not be recovered cannot be re-encoded
                 gridded = np.array([isinstance(e, DracoGrid) for e in encodings])
@@ -190,7 +191,35 @@ class GltfDocument(MeshDocument):
             hi = np.full(len(part.vertices), -1)
             np.minimum.at(lo, part.slot_to_vertex, code)
             np.maximum.at(hi, part.slot_to_vertex, code)
-            self._vertex_encoding.append(np.where(lo == hi, lo, -1))
+            vertex_code = np.where(lo == hi, lo, -1)
+            if draco:
+                # a vertex on the seam of Draco primitives is stored on each primitive's grid and
+                # read back at its first slot's (_draco_seams): it moves on that grid
+                on_grid = (bufs >= _DRACO) & (bufs < UNSTORED) & (code >= 0)
+                all_grid = np.ones(len(part.vertices), bool)
+                np.logical_and.at(all_grid, part.slot_to_vertex, on_grid)
+                first = np.full(len(part.vertices), len(bufs))
+                np.minimum.at(first, part.slot_to_vertex, np.arange(len(bufs)))
+                seam = (lo != hi) & all_grid & (first < len(bufs))
+                vertex_code[seam] = code[first[seam]]
+            self._vertex_encoding.append(vertex_code)
+            pins = self._grid_pins(part, bufs, offs, enc) if draco else np.zeros(0, np.int64)
+            self._draco_pins.append(pins)
+
+    def _grid_pins(self, part: MeshPart, bufs: np.ndarray, offs: np.ndarray, enc: np.ndarray) -> np.ndarray:
+        """Welded vertices that keep each Draco primitive's grid: for each axis, one point at the
+        minimum (the origin), and one at the maximum of the widest axis (the range).  The other
+        points at those extremes may move inwards; the grid's clip keeps them from passing."""
+        pins = []
+        for b in np.unique(bufs[(bufs >= _DRACO) & (bufs < UNSTORED)]).tolist():
+            sel = np.flatnonzero(bufs == b)
+            grid = self._encodings[int(enc[sel[0]])]
+            if not isinstance(grid, DracoGrid):
+                continue
+            stored = np.frombuffer(self._buffers[b][0], "<f4").reshape(-1, 3)[offs[sel] // 12]
+            ends = [np.argmin(stored[:, c]) for c in range(3)] + [np.argmax(stored[:, grid.axis])]
+            pins += [int(part.slot_to_vertex[sel[k]]) for k in ends]
+        return np.unique(np.array(pins, dtype=np.int64))
 
     def quantize_part(self, part: int, index: np.ndarray, vertices: np.ndarray,
                       decimals: int | None = None) -> np.ndarray:
@@ -210,10 +239,10 @@ class GltfDocument(MeshDocument):
                 continue
             enc = self._encodings[code]
             out[sel] = enc.quantize(v[sel])
-            if isinstance(enc, DracoGrid):  # vertices at the extremes set the Draco grid: they stay
-                low = np.any(old <= np.asarray(enc.origin, np.float32), axis=1)
-                top = (old[:, enc.axis] >= enc.top) | low
-                out[np.flatnonzero(sel)[top]] = old[top]
+        pins = self._draco_pins[part]
+        if pins.size:  # one vertex at each end of each Draco grid fixes its origin and range
+            keep = np.isin(np.asarray(index, dtype=np.int64), pins)
+            out[keep] = self.parts[part].vertices[np.asarray(index)[keep]]
         return out
 
     def _patch(self, vertices: list[np.ndarray], moved: list[np.ndarray], decimals: int | None) -> bytes:
@@ -1026,8 +1055,8 @@ def _draco_seams(positions: np.ndarray, bufs: np.ndarray, encs: np.ndarray,
     material border) is stored at two positions up to a grid step apart, and the bit-exact weld
     would cut the mesh there.  A point of one primitive within ``sqrt(3)`` grid steps of points of
     other primitives takes the position of the first of them (never two points of one primitive
-    together).  Such seam vertices have slots of two encodings, so ``quantize_part`` keeps them
-    in place and writing never moves them.
+    together).  A moved seam vertex is written on each primitive's grid, which keeps its copies
+    that close, and ``quantize_part`` gives the first copy's grid, which is what reading gives.
     """
     draco = (bufs >= _DRACO) & (bufs < UNSTORED)
     idx = np.flatnonzero(draco)
