@@ -38,7 +38,8 @@ CASES: dict[str, tuple[str, Any]] = {
 }
 
 
-def run_one(name: str, method: str, seeds: int, cases: dict[str, tuple[str, Any]]) -> dict[str, Any]:
+def run_one(name: str, method: str, seeds: int, cases: dict[str, tuple[str, Any]],
+            strength: float | None = None) -> dict[str, Any]:
     from core.api import detect_file, embed_file
     from core.errors import MeshMarkError
     from core.formats import read_mesh
@@ -48,7 +49,7 @@ def run_one(name: str, method: str, seeds: int, cases: dict[str, tuple[str, Any]
     row: dict[str, Any] = {"mesh": name, "method": method, "vertices": n}
     t = time.perf_counter()
     try:
-        out = embed_file(data, KEY, filename=name, payload=PAYLOAD, method=method)
+        out = embed_file(data, KEY, filename=name, payload=PAYLOAD, method=method, strength=strength)
     except MeshMarkError as exc:
         row["refused"] = str(exc)
         return row
@@ -90,13 +91,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--methods", nargs="+", default=["ellipsoids", "planes"])
     p.add_argument("--seeds", type=int, default=1, help="draws of each random attack (default: %(default)s)")
     p.add_argument("--attacks", nargs="+", default=list(CASES), help="columns of CASES to run")
+    p.add_argument("--strength", type=float, help="embedding strength (default: the engine's default)")
     p.add_argument("--out", type=Path, help="also write the table to this markdown file")
     a = p.parse_args(argv)
     cases = {c: CASES[c] for c in a.attacks}
     rows = []
     for name in a.meshes:
         for method in a.methods:
-            rows.append(run_one(name, method, a.seeds, cases))
+            rows.append(run_one(name, method, a.seeds, cases, a.strength))
             print(rows[-1], file=sys.stderr, flush=True)
     text = table(rows, list(cases))
     print(text)

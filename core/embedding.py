@@ -109,6 +109,16 @@ def closest_on_ellipsoid(y: np.ndarray, axes: np.ndarray, iterations: int = 40) 
     return x / np.maximum(r, 1.0)[:, None]
 
 
+def budget_cap(moves: np.ndarray, rms: float, n: int) -> float:
+    """Largest displacement such that the moves up to it, taken in increasing order, keep the
+    RMS over ``n`` vertices within ``rms`` (``inf`` when all of them fit)."""
+    m = np.sort(moves)
+    fits = np.cumsum(m * m) <= rms * rms * n
+    if fits.all():
+        return float("inf")
+    return float(m[fits][-1]) if fits.any() else 0.0
+
+
 @dataclass(frozen=True)
 class EmbedStats:
     """What the embedding did to one mesh."""
@@ -121,8 +131,8 @@ class EmbedStats:
 
 def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | bytes, codeword: np.ndarray,
                 method: str, strength: float, quantize: Quantize | None = None, tol: Tolerances = TOL,
-                prepared: list[tuple[Adjacency, Labels]] | None = None,
-                ) -> tuple[list[np.ndarray], list[EmbedStats], list[Analysis]]:
+                prepared: list[tuple[Adjacency, Labels]] | None = None, rms_budget: float | None = None,
+                diagonal: float | None = None) -> tuple[list[np.ndarray], list[EmbedStats], list[Analysis]]:
     """Move carriers of one or several meshes so that the detector reads ``codeword``.
 
     Parameters
@@ -141,6 +151,14 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
     prepared : list of (Adjacency, Labels), optional
         Each mesh's :func:`~core.analysis.prepare`, when the caller has it (retries, the
         distortion report).
+    rms_budget : float, optional
+        Largest RMS displacement of each mesh's vertices, as a fraction of its bounding-box
+        diagonal: the first round moves carriers in order of increasing displacement while the
+        budget lasts and leaves the others (``tol.rms_budget`` at the default strength).
+    diagonal : float, optional
+        The bounding-box diagonal the displacement ceiling and the RMS budget refer to: the
+        file's, so that a small part of a scene is not held to its own size (default: each
+        mesh's own).
 
     Returns
     -------
@@ -165,13 +183,16 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
     labels = [lab for _, lab in prepared]
     vs = [v.copy() for v in v0s]
     skipped = [np.zeros(len(v), bool) for v in v0s]
+    held = [np.zeros(len(v), bool) for v in v0s]
     an = [analyse(v, f, key, method, adj=adj, labels=lab, tol=tol)
           for v, f, adj, lab in zip(v0s, faces, adjs, labels, strict=True)]
     carriers = [len(a.carriers) for a in an]
     caps = []
-    for v, a in zip(v0s, an, strict=True):
+    diags = [bbox_diagonal(v) if diagonal is None else diagonal for v in v0s]
+    for v, a, diag in zip(v0s, an, diags, strict=True):
         med = float(np.median(a.scale)) if len(a.scale) else 0.0
-        caps.append(max(tol.max_move * bbox_diagonal(v), tol.coarse_move * med))
+        own = max(tol.max_move * bbox_diagonal(v), tol.coarse_move * med)
+        caps.append(min(own, tol.max_displacement * diag))
     ranked = ranked_by_default(sum(carriers), L)
     rounds = [0] * len(meshes)
     for r in range(1, tol.verify_rounds + 1):
@@ -181,7 +202,7 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
         for k, a in enumerate(an):
             bits = codeword[slots[k]]
             want = np.where(bits == 0, 1.0, -1.0)
-            bad = (want * a.z < margin) & ~skipped[k][a.carriers]
+            bad = (want * a.z < margin) & ~skipped[k][a.carriers] & ~held[k][a.carriers]
             if not bad.any():
                 continue
             any_bad = True
@@ -191,7 +212,23 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
             sub = a.subset(bad)
             new = target_positions(method, sub, v[idx], bits[bad], strength, tol)
             move = np.linalg.norm(new - v0[idx], axis=1)
-            okm = move <= np.minimum(tol.max_local_move * sub.scale, caps[k])
+            lim = np.minimum(tol.max_local_move * sub.scale, caps[k])
+            # a move over the cap is cut to the cap: kept when the carrier still ends up on the
+            # right side with some margin (then not pushed again), else the carrier is left alone
+            okm = move <= lim
+            over = np.flatnonzero(~okm)
+            if over.size:
+                base = v0[idx[over]]
+                new[over] = base + (new[over] - base) * (lim[over] / move[over])[:, None]
+                cut = sub.subset(over)
+                zc = statistic(method, new[over], cut.mu, cut.axes, cut.lam, cut.scale, tol)
+                okm[over[want[bad][over] * zc >= tol.clip_margin * strength]] = True
+            if r == 1 and rms_budget is not None:
+                # the budget goes to the smallest moves; the largest are left
+                eff = np.minimum(move, lim)
+                caps[k] = min(caps[k], budget_cap(eff[okm], rms_budget * diags[k], len(v)))
+                okm &= eff <= caps[k]
+            held[k][idx[okm & (move > lim)]] = True
             skipped[k][idx[~okm]] = True
             moved_v = new[okm]
             if quantize is not None:

@@ -14,7 +14,7 @@ from core.embedding import Quantize, embed_parts
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, FORMATS, Limits, MeshDocument, MeshPart, read_mesh, weld
 from core.mesh import Adjacency, bbox_diagonal
-from core.options import DEFAULT_METHOD, Options
+from core.options import DEFAULT_METHOD, METHODS, Options
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
 from core.slots import own_copy
 from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE
@@ -22,8 +22,12 @@ from core.tolerances import TOL
 
 #: carriers per codeword bit that capacity asks for (skipped carriers and slot collisions)
 CAPACITY_MARGIN = 1.5
-#: displacement caps tried in turn (multiples of the defaults in core.tolerances.Tolerances)
+#: displacement caps tried in turn (multiples of the defaults in core.tolerances.Tolerances; the
+#: ceiling ``max_displacement`` is never widened)
 CAP_FACTORS = (1.0, 2.0, 4.0)
+#: at the default strength the RMS budget is kept only while it leaves at most this share of the
+#: carriers unmoved: above it the mark reads back untouched but not after noise or smoothing
+MAX_BUDGET_SKIP = 0.2
 
 
 #: a face has no area when |cross| <= this x (bounding-box diagonal)^2 (collinear corners)
@@ -264,19 +268,23 @@ def embed_file(data: bytes, key: str | bytes, *, filename: str | None = None, pa
     return embed(data, options, filename=filename, limits=limits or DEFAULT_LIMITS, progress=progress)
 
 
-def _embed_doc(doc: MeshDocument, options: Options,
-               report: Progress) -> tuple[list[np.ndarray], EmbedReport, int | None]:
+def _embed_doc(doc: MeshDocument, options: Options, report: Progress,
+               probe: bool = True) -> tuple[list[np.ndarray], EmbedReport, int | None]:
+    """Embed into every usable part; ``probe``: a refusal says what would fit instead."""
     key = options.secret
     method, s, bits = options.embed_method, options.margin, options.payload_bits
     parts = _usable_parts(doc)
     codeword = encode(key, bits)
     L = len(codeword)
     decimals = doc.decimals
-    # coarse meshes may need more than the default displacement cap: relax it (reported as
-    # cap_factor) before refusing; text formats may need more printed decimals
-    tries = [(f, d) for f in CAP_FACTORS
-             for d in ([decimals] if decimals is None else [decimals, decimals + 2, decimals + 4, 17])]
+    # the default strength first keeps the RMS budget; coarse meshes may need more than the
+    # default displacement cap: relax it (reported as cap_factor, never past the ceiling) before
+    # refusing; text formats may need more printed decimals
+    decs = [decimals] if decimals is None else [decimals, decimals + 2, decimals + 4, 17]
+    budgets = [TOL.rms_budget, None] if options.strength is None else [None]
+    tries = [(b, f, d) for b in budgets for f in ((1.0,) if b is not None else CAP_FACTORS) for d in decs]
     meshes = [(doc.parts[i].vertices, doc.parts[i].faces) for i in parts]
+    diagonal = bbox_diagonal(np.concatenate([p.vertices for p in doc.parts])) or 1.0
     prepared = prepare([v for v, _ in meshes], [f for _, f in meshes])
     report(Milestones.PREPARED)
     # attempt k (a retry is for coarse meshes and rounding) moves progress over the k-th half of
@@ -286,12 +294,13 @@ def _embed_doc(doc: MeshDocument, options: Options,
     def attempt_start(k: int) -> float:
         return Milestones.MOVED + span * (1 - 0.5**k)
 
-    for attempt, (factor, dec) in enumerate(tries):
+    for attempt, (budget, factor, dec) in enumerate(tries):
         new = [p.vertices.copy() for p in doc.parts]
         tol = replace(TOL, coarse_move=TOL.coarse_move * factor, max_local_move=TOL.max_local_move * factor,
                       max_move=TOL.max_move * factor)
         vs, stats, final = embed_parts(meshes, key, codeword, method, s, tol=tol, prepared=prepared,
-                                       quantize=_part_quantizer(doc, parts, dec))
+                                       quantize=_part_quantizer(doc, parts, dec), rms_budget=budget,
+                                       diagonal=diagonal)
         for k, i in enumerate(parts):
             new[i] = vs[k]
         carriers = sum(st.carriers for st in stats)
@@ -308,8 +317,8 @@ def _embed_doc(doc: MeshDocument, options: Options,
         # part with room for a copy of its own (a mesh extracted from the file)
         groups = [final] + [[a] for a in final if len(final) > 1 and own_copy(a.slot_hash, L)]
         verify = _scaled(report, attempt_start(attempt), attempt_start(attempt + 1))
-        ok = True
-        for k, group in enumerate(groups):
+        ok = budget is None or skipped <= MAX_BUDGET_SKIP * carriers
+        for k, group in enumerate(groups if ok else []):
             ok = _reads_back(detect_analyses({method: group}, key, bits), bits)
             verify((k + 1) / len(groups))
             if not ok:
@@ -318,9 +327,10 @@ def _embed_doc(doc: MeshDocument, options: Options,
             break
     report(Milestones.VERIFIED)
     if not ok:
-        raise CapacityError("the watermark could not be made readable on this mesh at this strength "
-                            f"({carriers} carriers, {skipped} over the displacement cap)"
-                            f"; try a larger strength (now {s:g}, at most 1)", carriers=carriers, needed=L)
+        raise CapacityError("the watermark could not be made readable on this mesh within the displacement "
+                            f"ceiling of {TOL.max_displacement:g} of the bounding-box diagonal ({carriers} "
+                            f"carriers, {skipped} of them over it, at strength {s:g} with {method})"
+                            + (_what_fits(doc, options) if probe else ""), carriers=carriers, needed=L)
     moved, rms, mx, haus = _distortion(doc, new, {i: prepared[k][0] for k, i in enumerate(parts)})
     report(Milestones.MEASURED)
     part_info = []
@@ -335,6 +345,36 @@ def _embed_doc(doc: MeshDocument, options: Options,
                       cap_factor=factor,
                       parts=part_info)
     return new, rep, dec
+
+
+#: lower strengths a refusal tries (fewer carriers over the ceiling, less margin against attacks)
+PROBE_STRENGTHS = (0.05, 0.03)
+
+
+def _what_fits(doc: MeshDocument, options: Options) -> str:
+    """What a refused embedding could use instead: the other method or a lower strength with the
+    same payload, else the longest shorter payload that embeds (each tried for real)."""
+    method, s = options.embed_method, options.margin
+    others = [m for m in METHODS if m != method]
+    tries = [(m, None if options.strength is None else s) for m in others]
+    tries += [(m, t) for t in PROBE_STRENGTHS if t < s for m in [method, *others]]
+    for m, t in tries:
+        if _embeds(doc, replace(options, method=m, strength=t)):
+            return f"; the same payload reads back with method={m} at strength {s if t is None else t:g}"
+    bits = options.payload or ""
+    for n in [n for n in (24, 16, 8) if n < len(bits)]:
+        for m in [method, *others]:
+            if _embeds(doc, replace(options, payload=bits[:n], method=m)):
+                return f"; a {n}-bit payload reads back with method={m} (at strength {s:g})"
+    return "; no shorter payload, other method or lower strength reads back either: use a finer mesh"
+
+
+def _embeds(doc: MeshDocument, options: Options) -> bool:
+    try:
+        _embed_doc(doc, options, _no_progress, probe=False)
+    except CapacityError:
+        return False
+    return True
 
 
 def detect(data: bytes, options: Options, *, filename: str | None = None, limits: Limits = DEFAULT_LIMITS,

@@ -35,6 +35,16 @@ class Tolerances:
         Displacement cap as a fraction of the bounding-box diagonal...
     coarse_move : float
         ...or as this fraction of the median local scale, whichever is larger (coarse meshes).
+    max_displacement : float
+        Ceiling of every carrier's displacement, as a fraction of the bounding-box diagonal: the
+        caps above are widened for coarse meshes, never past this.
+    clip_margin : float
+        A carrier whose move exceeds its cap is moved as far as the cap allows and kept when it
+        then reads its bit with at least ``clip_margin * strength``.
+    rms_budget : float
+        At the default strength, the RMS displacement over all vertices of a mesh, as a fraction
+        of its bounding-box diagonal, is kept within this: the carriers that need the largest moves
+        are left unmoved (the code absorbs them) until the rest fit.
     verify_rounds : int
         Embed, re-read after storage rounding, fix: at most this many rounds.
     """
@@ -48,6 +58,9 @@ class Tolerances:
     max_local_move: float = 0.8
     max_move: float = 5e-3
     coarse_move: float = 0.25
+    max_displacement: float = 3e-3
+    clip_margin: float = 0.3
+    rms_budget: float = 2e-4
     verify_rounds: int = 12
 
 

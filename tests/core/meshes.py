@@ -3,6 +3,9 @@ with re-ordering (what the engine must not notice)."""
 
 from __future__ import annotations
 
+import re
+from typing import Any
+
 import numpy as np
 from scipy.spatial import ConvexHull
 
@@ -33,3 +36,9 @@ def similarity(v: np.ndarray, f: np.ndarray, rng: np.random.Generator) -> tuple[
     v2 = (s * v @ q.T + t)[perm]
     f2 = inv[f][rng.permutation(len(f))]
     return v2, f2
+
+
+def suggested(message: str) -> dict[str, Any] | None:
+    """The method and strength a refusal says the same payload reads back with (``None``: none)."""
+    m = re.search(r"reads back with method=(\w+) at strength ([0-9.]+)", message)
+    return None if m is None else {"method": m.group(1), "strength": float(m.group(2))}

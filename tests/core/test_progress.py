@@ -9,11 +9,11 @@ from core import api
 from tests.conftest import shared_mesh_path
 
 
-@pytest.mark.parametrize("name", ["spot.obj", "bun_zipper.ply", "CesiumMilkTruck.glb", "sink.3ds"])
+@pytest.mark.parametrize("name", ["spot.obj", "bun_zipper.ply", "Duck.glb", "sink.3ds"])
 def test_progress_rises_from_0_to_1(name):
     data = shared_mesh_path(name).read_bytes()
     calls = {
-        "embed": lambda p: api.embed(data, api.Options(key="k"), filename=name, progress=p),
+        "embed": lambda p: api.embed(data, api.Options(key="k", method="planes"), filename=name, progress=p),
         "detect": lambda p: api.detect(data, api.Options(key="k"), filename=name, progress=p),
         "capacity": lambda p: api.capacity(data, api.Options(), filename=name, progress=p),
     }
