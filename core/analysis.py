@@ -27,7 +27,7 @@ from core.eig3 import eigh3
 from core.hashing import derive, mix64
 from core.mesh import Adjacency, adjacency, neighbour_moments
 from core.options import METHODS
-from core.sync import Labels, select_carriers, vertex_labels
+from core.sync import Labels, select_carriers, tie_broken, vertex_labels
 from core.tolerances import TOL, Tolerances
 
 
@@ -68,6 +68,12 @@ class Analysis:
         """The carriers selected by ``which`` (a boolean mask or indices)."""
         return Analysis(self.carriers[which], self.slot_hash[which], self.z[which], self.mu[which],
                         self.axes[which], self.lam[which], self.scale[which], self.regular)
+
+
+#: vertices from which equal priorities are told apart by geometry: on smaller meshes a carrier's
+#: move is a large share of an edge, moves the tie-break of its neighbours and changes the
+#: selection (the Sink's parts: the key code no longer read back)
+TIE_BREAK_FROM = 2000
 
 
 def _key_salts(key: str | bytes) -> tuple[np.uint64, np.uint64]:
@@ -133,6 +139,8 @@ def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, m
         labels = vertex_labels(v, adj)
     salt_p, salt_s = _key_salts(key)
     prio = mix64(labels.labels ^ salt_p)
+    if len(v) >= TIE_BREAK_FROM:
+        prio = tie_broken(prio, v, adj)
     sel = select_carriers(adj, prio, labels.usable)
     mu, sigma = neighbour_moments(v, adj, sel)
     lam, axes = eigh3(sigma)

@@ -28,8 +28,18 @@ from core.mesh import Adjacency
 #: larger neighbourhoods tried on regular meshes before the geometric fallback
 ROUNDS = 3
 ROUND_STEPS = (3, 6, 9, 12)
-#: below this share of distinct labels among interior vertices the mesh counts as regular
-REGULAR_SHARE = 0.5
+#: more rings while fewer than this share of the usable vertices have distinct labels
+MORE_RINGS_BELOW = 0.5
+#: a mesh counts as regular (connectivity cannot tell its vertices apart) when fewer than
+#: MORE_RINGS_BELOW of its usable vertices have distinct labels and these are fewer than
+#: ENOUGH_LABELS (too few slots for a long codeword: the Sink's largest part) or than REGULAR_SHARE
+#: of the vertices; a CAD part of 26 % distinct labels but 11k of them keeps its connectivity
+ENOUGH_LABELS, REGULAR_SHARE = 1024, 0.02
+#: ...or when more than this share of them has a neighbour with the same label (rings of a surface
+#: of revolution: tied neighbours never win, and no pose-invariant quantity tells them apart)
+TIED_SHARE = 0.5
+#: bits of a priority that a pose-invariant geometric tie-break replaces (equal labels only differ there)
+TIE_BITS = 20
 #: offset of the fallback grid, in cells (irrational, so that symmetric meshes do not sit on cell
 #: boundaries: a cube's faces would otherwise lie exactly on grid planes)
 GRID_OFFSET = np.array([0.381966, 0.2360679, 0.1458980])
@@ -70,16 +80,38 @@ def wl_colours(adj: Adjacency, rounds: int = ROUNDS, start: np.ndarray | None = 
     return c
 
 
-def is_regular(colours: np.ndarray, usable: np.ndarray) -> bool:
-    """True when connectivity labels cannot tell most usable vertices apart."""
-    # estimated on the colours whose low 4 bits are 0 (a deterministic 1/16 sample: equal colours
-    # are sampled together, so the share of distinct values is preserved)
-    sample = colours[usable & ((colours & np.uint64(15)) == 0)]
-    if sample.size < 16:
-        sample = colours[usable]
-    if sample.size == 0:
+def is_regular(colours: np.ndarray, usable: np.ndarray, adj: Adjacency | None = None) -> bool:
+    """True when connectivity labels cannot tell the usable vertices apart: a minority of distinct
+    values and, of those, fewer than :data:`ENOUGH_LABELS` or fewer than :data:`REGULAR_SHARE` of
+    the vertices (counted exactly: a sample by value over-estimates the share on meshes of a few
+    repeated neighbourhoods, such as CAD parts); or, given ``adj``, more than :data:`TIED_SHARE`
+    of them next to a vertex of the same label."""
+    count = int(usable.sum())
+    if count == 0:
         return False
-    return np.unique(sample).size < REGULAR_SHARE * sample.size
+    distinct = np.unique(colours[usable]).size
+    if distinct < MORE_RINGS_BELOW * count and (distinct < ENOUGH_LABELS or distinct < REGULAR_SHARE * count):
+        return True
+    if adj is None or not adj.indices.size:
+        return False
+    tied = np.bincount(adj.rows, colours[adj.rows] == colours[adj.indices], minlength=len(colours)) > 0
+    return bool(tied[usable].mean() > TIED_SHARE)
+
+
+def tie_broken(priority: np.ndarray, vertices: np.ndarray, adj: Adjacency) -> np.ndarray:
+    """``priority`` with its low :data:`TIE_BITS` replaced by the distance of each vertex's
+    neighbour mean to the centroid of the mesh, quantised: neighbours with equal labels (equal
+    priorities, which never win against each other) are then told apart by a quantity that
+    rotation, translation, scaling and re-ordering leave alone, and that moving a carrier does not
+    change (its neighbours are not carriers)."""
+    n = len(vertices)
+    x = neighbour_means(vertices, adj) - vertices.mean(axis=0)
+    d = np.sqrt(x[:, 0] ** 2 + x[:, 1] ** 2 + x[:, 2] ** 2)
+    top = float(d.max()) if n else 0.0
+    q = np.floor(d / (top or 1.0) * ((1 << TIE_BITS) - 1)).astype(np.uint64)
+    high = priority & ~np.uint64((1 << TIE_BITS) - 1)
+    # a priority of 0 never wins: keep the tie-broken ones above it
+    return np.maximum(high | q, np.uint64(1))
 
 
 def frame_cells(points: np.ndarray, vertices: np.ndarray, cell: float) -> np.ndarray:
@@ -134,22 +166,27 @@ def vertex_labels(vertices: np.ndarray, adj: Adjacency, previous: Labels | None 
     for rounds in ROUND_STEPS:
         colours = wl_colours(adj, rounds, colours, done)
         done = rounds
-        regular = is_regular(colours, usable)
-        if not regular:
+        if not usable.any() or np.unique(colours[usable]).size >= MORE_RINGS_BELOW * usable.sum():
             break
     assert colours is not None
-    if regular:
+    if is_regular(colours, usable, adj):
         return Labels(combine(colours, _fallback_cells(vertices, adj)), usable, True, colours)
     return Labels(colours, usable, False, colours)
+
+
+def neighbour_means(vertices: np.ndarray, adj: Adjacency) -> np.ndarray:
+    """(n, 3) mean of each vertex's neighbours (isolated vertices: 0)."""
+    n = len(vertices)
+    deg = np.maximum(adj.degree, 1)
+    cols = (np.take(np.ascontiguousarray(vertices[:, c]), adj.indices) for c in range(3))
+    return np.stack([np.bincount(adj.rows, x, minlength=n) for x in cols], 1) / deg[:, None]
 
 
 def _fallback_cells(vertices: np.ndarray, adj: Adjacency) -> np.ndarray:
     """Cell hash of every vertex's neighbour mean (neighbour-only, so a carrier's own label
     does not move with it)."""
     n = len(vertices)
-    deg = np.maximum(adj.degree, 1)
-    cols = (np.take(np.ascontiguousarray(vertices[:, c]), adj.indices) for c in range(3))
-    mu = np.stack([np.bincount(adj.rows, x, minlength=n) for x in cols], 1) / deg[:, None]
+    mu = neighbour_means(vertices, adj)
     # cell size from the vertex count only: the median edge length moves with the carriers
     # and a 0.1 % change of the cell shifts far cells by a whole cell
     return frame_cells(mu, vertices, CELLS_PER_RADIUS / np.sqrt(max(n, 1)))

@@ -36,13 +36,14 @@ def client() -> Iterator[TestClient]:
 
 @pytest.fixture(scope="session")
 def sphere_obj() -> bytes:
-    """A generated icosphere (2562 vertices) as OBJ text: small and fast to watermark."""
-    return trimesh.creation.icosphere(subdivisions=4).export(file_type="obj").encode()
+    """A generated icosphere (10,242 vertices) as OBJ text: small and fast to watermark, and fine enough
+    for the default method within the displacement ceiling (2,562 vertices are not)."""
+    return trimesh.creation.icosphere(subdivisions=5).export(file_type="obj").encode()
 
 
 @pytest.fixture(scope="session")
 def sphere_ply() -> bytes:
-    return trimesh.creation.icosphere(subdivisions=4).export(file_type="ply")
+    return trimesh.creation.icosphere(subdivisions=5).export(file_type="ply")
 
 
 @pytest.fixture(scope="session")

@@ -10,7 +10,7 @@ import trimesh
 from tests.app.conftest import KEY, assert_problem, detect, embed, make_client, shared_mesh
 
 
-@pytest.mark.parametrize(("name", "payload"), [("spot.obj", "1011001110001111"), ("fandisk.off", None),
+@pytest.mark.parametrize(("name", "payload"), [("rocker-arm.obj", "1011001110001111"), ("fandisk.off", None),
                                                ("bun_zipper.ply", "10" * 40)])
 def test_embed_then_detect_round_trip(client, name, payload):
     data = shared_mesh(name)
@@ -31,8 +31,18 @@ def test_embed_then_detect_round_trip(client, name, payload):
     assert not detect(client, name, response.content, key="some other key").json()["detected"]
 
 
+def test_a_mesh_too_coarse_for_the_method_is_refused_with_what_fits(client):
+    """Spot (2,930 vertices) with ellipsoids needs moves past the displacement ceiling: 422, and the
+    detail names the method that fits, which then embeds."""
+    data = shared_mesh("spot.obj")
+    body = assert_problem(embed(client, "spot.obj", data, payload="1011001110001111"), 422,
+                         "too-little-capacity")
+    assert "ceiling" in body["detail"] and "method=planes" in body["detail"], body
+    assert embed(client, "spot.obj", data, payload="1011001110001111", method="planes").status_code == 200
+
+
 def test_binary_stl_keeps_its_size(client):
-    data = trimesh.creation.icosphere(subdivisions=4).export(file_type="stl")
+    data = trimesh.creation.icosphere(subdivisions=5).export(file_type="stl")
     response = embed(client, "ball.stl", data)
     assert response.status_code == 200, response.text
     assert response.headers["content-type"] == "model/stl"
@@ -125,7 +135,7 @@ def test_unsupported_format(client):
 def test_malformed_degenerate_and_too_small_meshes(client):
     bad = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 9\n"
     assert "line 5" in assert_problem(embed(client, "bad.obj", bad), 422, "malformed-mesh")["detail"]
-    truncated = trimesh.creation.icosphere(subdivisions=4).export(file_type="ply")[:5000]
+    truncated = trimesh.creation.icosphere(subdivisions=5).export(file_type="ply")[:5000]
     assert "ends early" in assert_problem(embed(client, "s.ply", truncated), 422, "malformed-mesh")["detail"]
     triangle = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
     assert_problem(embed(client, "tri.obj", triangle), 422, "degenerate-mesh")
@@ -134,7 +144,10 @@ def test_malformed_degenerate_and_too_small_meshes(client):
     assert body["needed"] > body["carriers"]
 
 
-def test_too_large(sphere_obj, sphere_ply):
+def test_too_large():
+    # a 2,562-vertex icosphere: 174 kB as OBJ, 97 kB as binary PLY
+    sphere_obj = trimesh.creation.icosphere(subdivisions=4).export(file_type="obj").encode()
+    sphere_ply = trimesh.creation.icosphere(subdivisions=4).export(file_type="ply")
     with make_client(workers=1, max_upload_bytes=120_000, max_vertices=1000) as small:
         # 174 kB: within the body cap (file cap + 64 KiB), over the file cap: the engine refuses it
         body = assert_problem(embed(small, "sphere.obj", sphere_obj), 413, "too-large")

@@ -90,7 +90,7 @@ def canaries(tmp_path, monkeypatch) -> Iterator[dict[str, Any]]:
     below them, so ``../canary.bin`` reaches the file from this process; the worker processes keep
     the cwd of the fork server they come from, so there the absolute and ``file://`` URIs are the
     ones that point at the canaries."""
-    v, f = H.icosphere(4)
+    v, f = H.icosphere(5)
     meta, blob = F.gltf_document(v, f)
     (tmp_path / "canary.bin").write_bytes(blob + H.CANARY_MARKER)
     (tmp_path / "canary.mtl").write_bytes(b"newmtl red\n# " + H.CANARY_MARKER + b"\n")
@@ -152,7 +152,7 @@ def test_deeply_nested_json(client, container):
 
 
 def test_oversized_and_broken_base64(client):
-    v, f = H.icosphere(4)
+    v, f = H.icosphere(5)
     meta, blob = F.gltf_document(v, f)
     # 3 MB of base64 that breaks at the very end: found without decoding into a mesh
     broken = json.loads(json.dumps(meta))
@@ -254,7 +254,7 @@ def test_obj_mtllib_pointing_outside_is_kept_verbatim_and_never_opened(client, c
     head = "\n".join([f"mtllib {mtl}", "mtllib ../canary.mtl", "mtllib ../../../../../../etc/passwd",
                       f"mtllib file://{mtl}", f"mtllib http://127.0.0.1:{canaries['port']}/canary.mtl",
                       f"mtllib {canaries['dir'] / 'canary.fifo'}", "usemtl red"])
-    data = F.obj_text(*H.icosphere(4), head=head)
+    data = F.obj_text(*H.icosphere(5), head=head)
     response = post(client, "ball.obj", data)
     assert response.status_code == 200, response.text[:500]
     out_lines = response.content.split(b"\n")

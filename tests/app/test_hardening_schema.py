@@ -45,8 +45,8 @@ def _ball(ext: str) -> bytes:
     from tests.core.formats.helpers import gltf_document, to_gltf
 
     if ext == "gltf":
-        return to_gltf(*gltf_document(*icosphere(4)))
-    data = trimesh.creation.icosphere(subdivisions=4).export(file_type=ext)
+        return to_gltf(*gltf_document(*icosphere(5)))
+    data = trimesh.creation.icosphere(subdivisions=5).export(file_type=ext)
     return data.encode() if isinstance(data, str) else data
 
 
