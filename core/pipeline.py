@@ -426,9 +426,11 @@ _CAPACITY_KEY = b"meshmark-capacity-probe"
 
 def capacity(data: bytes, options: Options, *, filename: str | None = None,
              limits: Limits = DEFAULT_LIMITS, progress: Progress | None = None) -> CapacityReport:
-    """Carriers and payload room of a mesh file, without embedding (``options``: ``method``,
-    ``strength`` and, optionally, ``key``: with it the carriers are those an embedding with that
-    key will have; without it, those of a fixed probe key)."""
+    """Carriers and payload room of a mesh file (``options``: ``method``, ``strength`` and,
+    optionally, ``key``: with it the carriers are those an embedding with that key will have;
+    without it, those of a fixed probe key).  ``max_payload_bits`` is verified: random payloads of
+    that length really embed and read back with that key (:func:`_verified_payload`); the file
+    returned to no one."""
     method, s = options.embed_method, options.margin
     report = progress or _no_progress
     report(0.0)
@@ -448,8 +450,8 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
         carriers += stats[k].carriers
         info.append({"name": doc.parts[i].name, "vertices": len(doc.parts[i].vertices),
                      "carriers": stats[k].carriers})
+    max_bits = _verified_payload(doc, replace(options, key=key), _largest_payload(carriers / CAPACITY_MARGIN))
     report(Milestones.VERIFIED)
-    max_bits = _largest_payload(carriers / CAPACITY_MARGIN)
     by_copies = {str(c): _largest_payload(carriers / c) for c in (1, 2, 4, 8, 16)}
     _, rms, mx, _ = _distortion(doc, new, {}, hausdorff=False)
     report(1.0)
@@ -457,6 +459,26 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
                           copies_of_default=round(carriers / codeword_length(None), 3),
                           codeword_bits_default=codeword_length(None), payload_bits_by_copies=by_copies,
                           expected_rms_displacement=rms, expected_max_displacement=mx, parts=info)
+
+
+#: payload lengths capacity verifies, longest first, below the carrier-count bound
+CAPACITY_LADDER = (256, 192, 128, 96, 64, 48, 32, 24, 16, 12, 8, 4, 2, 1)
+#: random payloads of a length that must all embed for capacity to offer it
+CAPACITY_TRIALS = 4
+
+
+def _verified_payload(doc: MeshDocument, options: Options, bound: int) -> int:
+    """The longest payload, at most ``bound`` bits, that really embeds and reads back with
+    ``options`` (key, method, strength): the bound itself or the next rung of the ladder below it
+    that embeds :data:`CAPACITY_TRIALS` random payloads (0 if none does)."""
+    rng = np.random.default_rng(bound)
+    for n in [bound] + [n for n in CAPACITY_LADDER if n < bound]:
+        if n <= 0:
+            break
+        payloads = ["".join(map(str, rng.integers(0, 2, n))) for _ in range(CAPACITY_TRIALS)]
+        if all(_embeds(doc, replace(options, payload=p)) for p in payloads):
+            return n
+    return 0
 
 
 def capacity_file(data: bytes, *, filename: str | None = None, method: str = DEFAULT_METHOD,

@@ -67,7 +67,7 @@ class CapacityReport(_Report):
     method: str
     strength: float
     carriers: int
-    max_payload_bits: int            # largest payload with carriers >= 1.5 x its codeword (CRC + code)
+    max_payload_bits: int            # largest payload (carriers >= 1.5 x its codeword) verified to embed
     copies_of_default: float         # copies of the key-derived 32-bit code
     codeword_bits_default: int       # 56: the key-derived code with Hamming(7,4)
     expected_rms_displacement: float

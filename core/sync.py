@@ -28,8 +28,10 @@ from core.mesh import Adjacency
 #: larger neighbourhoods tried on regular meshes before the geometric fallback
 ROUNDS = 3
 ROUND_STEPS = (3, 6, 9, 12)
-#: more rings while fewer than this share of the usable vertices have distinct labels
-MORE_RINGS_BELOW = 0.5
+#: more rings while fewer than this share of the usable vertices have distinct labels, and, once
+#: there are ENOUGH_LABELS, as long as wider rings multiply them by MORE_RINGS_GAIN (a CAD part gains
+#: 5 % from 3 to 12 rings, and 12-ring labels were lost to a crop: 0/2 against 2/2 with 3)
+MORE_RINGS_BELOW, MORE_RINGS_GAIN = 0.5, 1.1
 #: a mesh counts as regular (connectivity cannot tell its vertices apart) when fewer than
 #: MORE_RINGS_BELOW of its usable vertices have distinct labels and these are fewer than
 #: ENOUGH_LABELS (too few slots for a long codeword: the Sink's largest part) or than REGULAR_SHARE
@@ -163,10 +165,14 @@ def vertex_labels(vertices: np.ndarray, adj: Adjacency, previous: Labels | None 
     # depends on connectivity only, so embedder and detector make the same one
     colours: np.ndarray | None = None
     done = 0
+    distinct = 0
     for rounds in ROUND_STEPS:
-        colours = wl_colours(adj, rounds, colours, done)
-        done = rounds
-        if not usable.any() or np.unique(colours[usable]).size >= MORE_RINGS_BELOW * usable.sum():
+        wider = wl_colours(adj, rounds, colours, done)
+        count = np.unique(wider[usable]).size
+        if colours is not None and distinct >= ENOUGH_LABELS and count < MORE_RINGS_GAIN * distinct:
+            break  # plenty of labels, and wider rings barely add any (CAD): keep the narrower ones
+        colours, done, distinct = wider, rounds, count
+        if not usable.any() or distinct >= MORE_RINGS_BELOW * usable.sum():
             break
     assert colours is not None
     if is_regular(colours, usable, adj):
