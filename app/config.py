@@ -55,6 +55,11 @@ class Settings(BaseSettings):
     blob_dir: Path = Field(default_factory=lambda: Path(tempfile.gettempdir()) / "meshmark-blobs")
     worker_concurrency: int | None = Field(default=None, ge=1)  # `meshmark worker` processes; None = CPUs
 
+    # leak tracing: the registry of issued copies, a SQLite file unless a database URL is given
+    # (postgresql+psycopg://user:password@host/db; the URL wins over the path)
+    registry_path: Path = Path("meshmark-registry.sqlite3")
+    registry_url: SecretStr | None = None
+
     # security: caller API keys (comma-separated; empty = no authentication), and the HMAC secret of
     # the key fingerprints in logs (None = random per process)
     api_keys: Annotated[list[SecretStr], NoDecode] = Field(default_factory=list)

@@ -11,6 +11,8 @@ with :class:`app.multipart.FormParser`, which rejects both (``bad-form``, 422), 
 
 from __future__ import annotations
 
+import math
+import re
 from collections.abc import Callable, Coroutine
 from typing import Annotated, Any
 
@@ -18,6 +20,7 @@ from fastapi import Depends, File, Form, Request, Response, UploadFile
 from fastapi.routing import APIRoute
 from python_multipart.multipart import parse_options_header
 from starlette.background import BackgroundTask
+from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import FormData
 from starlette.types import Receive
 
@@ -27,6 +30,16 @@ from app.inputs import PAYLOAD_SCHEMA, STRENGTH_SCHEMA
 from app.multipart import FormError, FormParser
 from app.problems import BAD_FORM, CALLBACK_NOT_ALLOWED, NOT_MULTIPART, ProblemError, problem_response
 from app.request_id import current_request_id
+from app.tracing import (
+    ASSET_ID_PATTERN,
+    DEFAULT_THRESHOLD,
+    DEFAULT_TOP,
+    MAX_TOP,
+    RECIPIENT_PATTERN,
+    current_registry,
+    plan_copy,
+    plan_trace,
+)
 from app.workers.tasks import Task
 from core.coding import MAX_PAYLOAD_BITS
 from core.errors import PayloadError
@@ -210,6 +223,69 @@ async def capacity_task(
                 request_id=current_request_id())
 
 
+Recipient = Annotated[str, Form(description="Who the copy is for: any text of 1-500 characters without "
+                                "control characters (opaque to MeshMark).",
+                                json_schema_extra={"pattern": RECIPIENT_PATTERN, "minLength": 1,
+                                                   "maxLength": 500})]
+AssetId = Annotated[str | None, Form(description="The asset's id, 1-200 characters of letters, digits and "
+                                     "`._:-` (default: `sha256:` and the SHA-256 of the uploaded file).",
+                                     json_schema_extra={"pattern": ASSET_ID_PATTERN})]
+_RECIPIENT, _ASSET_ID = re.compile(RECIPIENT_PATTERN), re.compile(ASSET_ID_PATTERN)
+
+
+def _checked_asset_id(asset_id: str | None) -> str | None:
+    if asset_id is not None and not _ASSET_ID.fullmatch(asset_id):
+        raise ProblemError(BAD_FORM, "asset_id must be 1-200 characters of letters, digits and ._:-")
+    return asset_id
+
+
+async def copy_task(
+    settings: SettingsDep,
+    mesh: MeshFile,
+    key: WatermarkKey,
+    recipient: Recipient,
+    asset_id: AssetId = None,
+    method: Annotated[str, Form(json_schema_extra=_METHOD_SCHEMA)] = DEFAULT_METHOD,
+    strength: Strength = None,
+) -> Task:
+    """A copy for ``recipient``: the codeword comes from the registry (the one issued before, or a
+    fresh one)."""
+    if not _RECIPIENT.fullmatch(recipient):
+        raise ProblemError(BAD_FORM, "recipient must be 1-500 characters without control characters")
+    data = await mesh.read()
+    options = _options(key=key, method=method, strength=strength)
+    asset = _checked_asset_id(asset_id)
+    plan = await run_in_threadpool(lambda: plan_copy(current_registry(), data, options, recipient, asset))
+    return Task("copy", data, options, filename=mesh.filename, limits=settings.limits(),
+                request_id=current_request_id(), plan=plan)
+
+
+async def trace_task(
+    settings: SettingsDep,
+    mesh: MeshFile,
+    key: WatermarkKey,
+    asset_id: Annotated[str | None, Form(description="Trace among the copies of this asset only (default: "
+                                         "every copy registered).",
+                                         json_schema_extra={"pattern": ASSET_ID_PATTERN})] = None,
+    threshold: Annotated[float, Form(description="Accuse a recipient when the probability that an innocent "
+                                     "scores as high is at most this, in (0, 0.5].",
+                                     json_schema_extra={"exclusiveMinimum": 0, "maximum": 0.5})
+                         ] = DEFAULT_THRESHOLD,
+    top: Annotated[int, Form(description=f"Recipients listed, best first, 1-{MAX_TOP}.",
+                             json_schema_extra={"minimum": 1, "maximum": MAX_TOP})] = DEFAULT_TOP,
+) -> Task:
+    if not (math.isfinite(threshold) and 0 < threshold <= 0.5):
+        raise ProblemError(BAD_FORM, "threshold must be a number in (0, 0.5]")
+    if not 1 <= top <= MAX_TOP:
+        raise ProblemError(BAD_FORM, f"top must be 1 to {MAX_TOP}")
+    data = await mesh.read()
+    options = _options(key=key)
+    asset = _checked_asset_id(asset_id)
+    plan = await run_in_threadpool(lambda: plan_trace(current_registry(), asset, threshold, top))
+    return Task("trace", data, options, filename=mesh.filename, limits=settings.limits(),
+                request_id=current_request_id(), plan=plan)
+
+
 async def preview_task(settings: SettingsDep, mesh: MeshFile, original: OriginalFile = None) -> Task:
     data = await mesh.read()
     before = None if original is None else await original.read()
@@ -241,4 +317,6 @@ EmbedForm = Annotated[Task, Depends(embed_task)]
 DetectForm = Annotated[Task, Depends(detect_task)]
 CapacityForm = Annotated[Task, Depends(capacity_task)]
 PreviewForm = Annotated[Task, Depends(preview_task)]
+CopyForm = Annotated[Task, Depends(copy_task)]
+TraceForm = Annotated[Task, Depends(trace_task)]
 CallbackUrl = Annotated[str | None, Depends(callback_url)]

@@ -20,6 +20,7 @@ from app.metrics import Metrics
 from app.middleware import BodyLimitMiddleware, MetricsMiddleware
 from app.problems import BAD_FORM, Problem, install_problem_handlers, problem_responses
 from app.routes import V1_ROUTERS, health
+from app.tracing import close_registry, configure_registry
 from app.web import router as web_router
 from app.workers.pool import WorkerPool
 from meshmark import __version__
@@ -58,6 +59,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
                       timeout=settings.job_timeout_seconds, memory_mb=settings.worker_memory_mb,
                       max_tasks=settings.worker_max_tasks)
     runner = make_runner(settings, pool)
+    configure_registry(settings)
     await pool.start()
     app.state.pool, app.state.runner = pool, runner
     log.info("MeshMark ready: %d workers, %d task slots, %s jobs backend", settings.workers,
@@ -68,6 +70,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.pool = app.state.runner = None
         await runner.close()
         await pool.stop()
+        close_registry()
 
 
 def _form_fields_without_null(schemas: dict[str, Any], operation: dict[str, Any]) -> None:

@@ -116,6 +116,9 @@ class LocalJobRunner:
             return
         try:
             result = task.render(value)
+        except ProblemError as exc:  # a copy the registry refused (another one won the race)
+            await self._finish(job_id, state="failed", error=exc.to_dict())
+            return
         except Exception:
             log.exception("job %s: could not render the result", job_id)
             error = ProblemError(INTERNAL, "internal error").to_dict()

@@ -83,7 +83,31 @@ def embedded_result(embedded: EmbeddedFile, filename: str | None) -> Rendered:
 
 def json_result(value: Any) -> Rendered:
     """A report with ``to_dict()`` as a JSON body."""
-    return Rendered(_json(value.to_dict()), "application/json")
+    return json_answer(value.to_dict())
+
+
+def json_answer(value: Any) -> Rendered:
+    return Rendered(_json(value), "application/json")
+
+
+#: documented response headers of a fingerprinted copy, besides those of an embedding
+COPY_HEADERS: dict[str, str] = {
+    "X-MeshMark-Asset-Id": "The asset the copy is registered under (the caller's `asset_id`, or the "
+                           "SHA-256 of the uploaded cover): give it to `/v1/trace`.",
+    "X-MeshMark-Codeword-Bits": "Length of the recipient's codeword.",
+    "X-MeshMark-Fingerprint-Score": "Score of the recipient's codeword read back from the copy before "
+                                    "sending it (an innocent scores above t with probability <= "
+                                    "exp(-t^2/2)).",
+}
+
+
+def copy_result(embedded: EmbeddedFile, filename: str | None, asset_id: str, codeword_bits: int,
+                score: float) -> Rendered:
+    """A fingerprinted copy: the marked mesh of :func:`embedded_result` with :data:`COPY_HEADERS`."""
+    out = embedded_result(embedded, filename)
+    out.headers.update({"X-MeshMark-Asset-Id": asset_id, "X-MeshMark-Codeword-Bits": str(codeword_bits),
+                        "X-MeshMark-Fingerprint-Score": f"{score:.2f}"})
+    return out
 
 
 def preview_result(geometry: PreviewGeometry) -> Rendered:

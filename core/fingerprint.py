@@ -196,18 +196,19 @@ def codeword_votes(analyses: list[Analysis], key: str | bytes, length: int,
     return out
 
 
-def read_votes(data: bytes, options: Options, lengths: list[int], *, filename: str | None = None,
-               limits: Limits = DEFAULT_LIMITS, progress: Progress | None = None) -> dict[int, np.ndarray]:
-    """:func:`codeword_votes` of a suspect file for every codeword length asked (``options``: the
-    key and the copies' ``method``)."""
+def read_votes(data: bytes, options: Options, groups: list[tuple[str, int]], *, filename: str | None = None,
+               limits: Limits = DEFAULT_LIMITS, progress: Progress | None = None
+               ) -> dict[tuple[str, int], np.ndarray]:
+    """:func:`codeword_votes` of a suspect file under ``options.key`` for every (method, codeword
+    length) asked (the methods share one carrier selection)."""
     report = progress or _no_progress
     report(0.0)
     doc = read_mesh(data, filename, limits)
     report(Milestones.READ)
-    method = options.embed_method
-    analyses = _analyses(doc, _usable_parts(doc), options.secret, [method],
-                         _scaled(report, Milestones.READ, Milestones.ANALYSED))[method]
-    out = {L: codeword_votes(analyses, options.secret, L) for L in sorted(set(lengths))}
+    methods = sorted({m for m, _ in groups})
+    analyses = _analyses(doc, _usable_parts(doc), options.secret, methods,
+                         _scaled(report, Milestones.READ, Milestones.ANALYSED))
+    out = {(m, L): codeword_votes(analyses[m], options.secret, L) for m, L in sorted(set(groups))}
     report(1.0)
     return out
 

@@ -7,6 +7,7 @@ relative to the repository root).  Tests needing them skip with a visible reason
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -30,6 +31,19 @@ def shared_mesh_path(name: str) -> Path:
     if not path.is_file():
         pytest.skip(f"shared mesh {name} not found in {MESHES_DIR} (set MESHMARK_TEST_MESHES)")
     return path
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _registry_outside_the_repository(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Apps and servers started with default settings keep their registry of copies in a temporary
+    folder, not in the working directory (``MESHMARK_REGISTRY_PATH``, unless the run sets it)."""
+    name = "MESHMARK_REGISTRY_PATH"
+    before = os.environ.get(name)
+    if before is None:
+        os.environ[name] = str(tmp_path_factory.mktemp("registry") / "registry.sqlite3")
+    yield
+    if before is None:
+        os.environ.pop(name, None)
 
 
 @pytest.fixture

@@ -29,6 +29,7 @@ from app.redis_jobs.blobs import BlobNotFound, BlobStore
 from app.redis_jobs.store import JobRecords, input_key, result_key
 from app.request_id import set_request_id
 from app.results import Rendered
+from app.tracing import CopyPlan
 from app.workers import failures
 from app.workers.tasks import Task, ThrottledProgress
 from core.formats import Limits
@@ -46,15 +47,23 @@ def encode_input(task: Task) -> bytes:
     bytes as they were uploaded."""
     header = {"kind": task.kind, "filename": task.filename, "options": asdict(task.options),
               "limits": asdict(task.limits), "request_id": task.request_id}
+    if isinstance(task.plan, CopyPlan):  # the only plan of a job kind
+        plan = asdict(task.plan)
+        plan["codeword"] = None if task.plan.codeword is None else task.plan.codeword.hex()
+        header["copy_plan"] = plan
     return json.dumps(header, separators=(",", ":")).encode() + b"\n" + task.data
 
 
 def decode_input(blob: bytes) -> Task:
     header, _, data = blob.partition(b"\n")
     fields: dict[str, Any] = json.loads(header)
+    plan = fields.get("copy_plan")
+    if plan is not None:
+        codeword = None if plan["codeword"] is None else bytes.fromhex(plan["codeword"])
+        plan = CopyPlan(**{**plan, "codeword": codeword})
     return Task(kind=fields["kind"], data=data, options=Options(**fields["options"]),
                 filename=fields["filename"], limits=Limits(**fields["limits"]),
-                request_id=fields.get("request_id"))
+                request_id=fields.get("request_id"), plan=plan)
 
 
 class _Progress(ThrottledProgress):

@@ -13,11 +13,12 @@ from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
 
 from app.deps import RunnerDep, StoreDep
-from app.forms import CallbackUrl, DetectForm, EmbedForm, StrictFormRoute
+from app.forms import CallbackUrl, CopyForm, DetectForm, EmbedForm, StrictFormRoute
 from app.jobs import Job, JobStatus, JobStore
 from app.logs import log_task
 from app.problems import (
     CALLBACK_NOT_ALLOWED,
+    COPY_CONFLICT,
     JOB_FAILED,
     JOB_NOT_READY,
     NOT_FOUND,
@@ -70,6 +71,18 @@ async def create_detect_job(task: DetectForm, callback_url: CallbackUrl, runner:
                             request: Request) -> JSONResponse:
     """Run a detection in the background; the result is the JSON of `POST /v1/detect`.  With
     `callback_url`, the final status is also POSTed there."""
+    job = await runner.submit(task, callback_url)
+    log_task(request, task, job=job.id)
+    return _accepted(job, request)
+
+
+@router.post("/v1/jobs/copies", summary="Start a copy job", status_code=202, response_model=JobStatus,
+             responses={**_CREATE, **problem_responses(*MESH_PROBLEMS, TOO_LITTLE_CAPACITY, COPY_CONFLICT,
+                                                       NOT_READY, CALLBACK_NOT_ALLOWED)})
+async def create_copy_job(task: CopyForm, callback_url: CallbackUrl, runner: RunnerDep,
+                          request: Request) -> JSONResponse:
+    """`POST /v1/copies` in the background, for large files: the result has the same body and
+    headers; the copy is in the registry once the job has succeeded."""
     job = await runner.submit(task, callback_url)
     log_task(request, task, job=job.id)
     return _accepted(job, request)

@@ -13,8 +13,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from app.results import Rendered, embedded_result, json_result, preview_result
+from app.results import Rendered, copy_result, embedded_result, json_answer, json_result, preview_result
+from app.tracing import CopyPlan, TracePlan, current_registry, rank_copies, record_copy, run_copy, run_trace
 from core import api
+from core.fingerprint import Fingerprinted
 from core.formats import DEFAULT_LIMITS, Limits
 from core.preview import PreviewGeometry, preview_file
 
@@ -33,6 +35,8 @@ class Task:
     original_filename: str | None = None
     #: the id of the request that asked for it (log lines, job status)
     request_id: str | None = None
+    #: copy and trace: the codeword or the registered groups (:mod:`app.tracing`)
+    plan: CopyPlan | TracePlan | None = None
 
     @property
     def key(self) -> str | None:
@@ -54,6 +58,30 @@ class TaskKind:
     render: Callable[[Task, Any], Rendered]
     #: offered as a background job (``POST /v1/jobs/{kind}``)
     job: bool
+
+
+def _copy(task: Task, progress: api.Progress) -> Fingerprinted:
+    assert isinstance(task.plan, CopyPlan)
+    return run_copy(task.plan, task.data, task.options, filename=task.filename, limits=task.limits,
+                    progress=progress)
+
+
+def _trace(task: Task, progress: api.Progress) -> dict[tuple[str, int], Any]:
+    assert isinstance(task.plan, TracePlan)
+    return run_trace(task.plan, task.data, task.options.secret, filename=task.filename, limits=task.limits,
+                     progress=progress)
+
+
+def _rendered_copy(task: Task, value: Fingerprinted) -> Rendered:
+    """The marked copy, once it is in the registry (where the answer is rendered)."""
+    assert isinstance(task.plan, CopyPlan)
+    stored = record_copy(current_registry(), task.plan, task.options, value)
+    return copy_result(value.file, task.filename, stored.asset_id, stored.codeword_bits, value.score)
+
+
+def _rendered_trace(task: Task, value: dict[tuple[str, int], Any]) -> Rendered:
+    assert isinstance(task.plan, TracePlan)
+    return json_answer(rank_copies(current_registry(), task.plan, value))
 
 
 def _embed(task: Task, progress: api.Progress) -> api.EmbeddedFile:
@@ -91,6 +119,8 @@ TASKS: dict[str, TaskKind] = {
     "detect": TaskKind(_detect, _rendered_json, job=True),
     "capacity": TaskKind(_capacity, _rendered_json, job=False),
     "preview": TaskKind(_preview, _rendered_preview, job=False),
+    "copy": TaskKind(_copy, _rendered_copy, job=True),
+    "trace": TaskKind(_trace, _rendered_trace, job=False),
 }
 JOB_KINDS = tuple(name for name, kind in TASKS.items() if kind.job)
 

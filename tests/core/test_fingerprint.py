@@ -94,11 +94,15 @@ def test_real_mesh_copy_is_traced_to_its_recipient_and_an_average_to_both() -> N
     packed = _packed([first.codeword, *others])
     threshold = score_threshold(1e-9, 2 * len(packed))
 
-    scores = correlation_scores(read_votes(first.file.data, options, [L], filename=path.name)[L], packed, L)
+    group = ("ellipsoids", L)
+    leaked = read_votes(first.file.data, options, [group], filename=path.name)[group]
+    scores = correlation_scores(leaked, packed, L)
     assert scores[0] >= threshold and scores[1:].max() < threshold
-    unmarked = correlation_scores(read_votes(data, options, [L], filename=path.name)[L], packed, L)
+    votes = read_votes(data, options, [("planes", L), group], filename=path.name)
+    assert set(votes) == {("planes", L), group}
+    unmarked = correlation_scores(votes[group], packed, L)
     assert unmarked.max() < threshold
-    wrong_key = read_votes(first.file.data, Options(key="another"), [L], filename=path.name)[L]
+    wrong_key = read_votes(first.file.data, Options(key="another"), [group], filename=path.name)[group]
     assert correlation_scores(wrong_key, packed, L).max() < threshold
 
     a, b = (read_mesh(f.file.data, path.name).parts[0] for f in (first, second))
