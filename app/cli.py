@@ -1,10 +1,12 @@
 """``meshmark``: embed, detect and measure capacity on local files (here, or on a MeshMark server
-with ``--server URL``), serve the HTTP API, or run a worker of the Redis jobs backend.
+with ``--server URL``), issue fingerprinted copies and trace leaks (with the local registry),
+serve the HTTP API, or run a worker of the Redis jobs backend.
 
 A mesh argument may be ``-``: standard input, or for the output standard output (the report then
 goes to standard error).
 
-Exit codes: 0 success (detect: watermark found), 1 detect ran but found no watermark,
+Exit codes: 0 success (detect: watermark found; trace: someone accused), 1 detect ran but found
+no watermark (trace: no one accused),
 2 usage or input error (bad arguments, unreadable file, malformed mesh, a refusal of the server),
 3 internal error, 4 the server could not be reached or kept failing (5xx, 429 after the retries).
 """
@@ -188,6 +190,53 @@ def _capacity(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _copy(args: argparse.Namespace) -> int:
+    """A fingerprinted copy for ``--recipient``, recorded in the registry of the ``MESHMARK_*``
+    settings (``MESHMARK_REGISTRY_PATH`` or ``MESHMARK_REGISTRY_URL``)."""
+    from app.problems import ProblemError
+    from app.tracing import open_registry, plan_copy, record_copy, run_copy
+
+    key = _read_key(args)
+    data = _read_mesh(args.input)
+    options = api.Options(key=key, method=args.method, strength=args.strength)
+    _check_output(data, args)
+    tune_malloc()
+    with open_registry(_settings()) as registry:
+        try:
+            plan = plan_copy(registry, data, options, args.recipient, args.asset_id)
+            value = run_copy(plan, data, options, filename=_name(args.input),
+                             progress=_progress_bar("marking"))
+            stored = record_copy(registry, plan, options, value)
+        except ProblemError as exc:
+            raise _UsageError(exc.detail) from None
+    _write_output(args.output, value.file.data)
+    _print_json({"asset_id": stored.asset_id, "recipient": stored.recipient,
+                 "codeword_bits": stored.codeword_bits, "score": round(value.score, 2),
+                 "report": value.file.report.to_dict()}, _report_stream(args))
+    return EXIT_OK
+
+
+def _trace(args: argparse.Namespace) -> int:
+    """Who leaked ``input``: exit 0 when someone is accused, 1 when no one is."""
+    from app.problems import ProblemError
+    from app.tracing import open_registry, plan_trace, rank_copies, run_trace
+
+    key = _read_key(args)
+    data = _read_mesh(args.input)
+    if not 0 < args.threshold <= 0.5:
+        raise _UsageError("--threshold must be in (0, 0.5]")
+    tune_malloc()
+    with open_registry(_settings()) as registry:
+        try:
+            plan = plan_trace(registry, args.asset_id, args.threshold, args.top)
+        except ProblemError as exc:
+            raise _UsageError(exc.detail) from None
+        votes = run_trace(plan, data, key, filename=_name(args.input), progress=_progress_bar("tracing"))
+        answer = rank_copies(registry, plan, votes)
+    _print_json(answer)
+    return EXIT_OK if answer["accused"] else EXIT_NOT_DETECTED
+
+
 def _remote(args: argparse.Namespace, work: Any) -> Any:
     """``work(client)`` against ``--server``; the server's refusals become CLI errors."""
     import httpx
@@ -346,6 +395,26 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--strength", type=float, help="boundary margin, > 0")
     server_option(p)
     p.set_defaults(run=_capacity)
+
+    p = sub.add_parser("copy", help="a fingerprinted copy for one recipient, recorded in the registry "
+                       "(MESHMARK_REGISTRY_PATH or MESHMARK_REGISTRY_URL)")
+    p.add_argument("input", help=mesh_help)
+    p.add_argument("output", help="where to write the recipient's copy (same format and extension), or -")
+    p.add_argument("--recipient", required=True, help="who the copy is for (any text)")
+    p.add_argument("--asset-id", help="the asset's id (default: sha256: and the SHA-256 of the input)")
+    key_options(p)
+    method_option(p, api.DEFAULT_METHOD)
+    p.add_argument("--strength", type=float, help="boundary margin, > 0 (engine default if omitted)")
+    p.set_defaults(run=_copy)
+
+    p = sub.add_parser("trace", help="who leaked this copy (exit 0: someone accused, 1: no one)")
+    p.add_argument("input", help=mesh_help)
+    p.add_argument("--asset-id", help="trace among this asset's copies (default: every copy registered)")
+    key_options(p)
+    p.add_argument("--threshold", type=float, default=1e-9,
+                   help="accuse at this false-accusation probability (default: %(default)g)")
+    p.add_argument("--top", type=int, default=10, help="recipients listed (default: %(default)s)")
+    p.set_defaults(run=_trace)
 
     p = sub.add_parser("serve", help="run the HTTP API (settings from MESHMARK_* variables)")
     p.add_argument("--host", help="bind address (default: $MESHMARK_HOST or 127.0.0.1)")

@@ -21,6 +21,8 @@ import datetime as dt
 import hashlib
 import secrets
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -67,6 +69,17 @@ def registry_url(settings: Settings) -> str:
 _lock = threading.Lock()
 _url: str | None = None
 _registry: Registry | None = None
+
+
+@contextmanager
+def open_registry(settings: Settings) -> Iterator[Registry]:
+    """``settings``' registry, migrated, closed on exit (the command line)."""
+    registry = Registry(registry_url(settings))
+    try:
+        registry.migrate()
+        yield registry
+    finally:
+        registry.close()
 
 
 def configure_registry(settings: Settings) -> None:

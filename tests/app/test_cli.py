@@ -146,3 +146,26 @@ def test_capacity_with_the_key_counts_the_embedding_carriers(capsys, tmp_path, s
     monkeypatch.setenv("MESHMARK_KEY", KEY)
     _, out, _ = run(capsys, "capacity", str(spot))
     assert json.loads(out)["carriers"] == carriers
+
+
+def test_copy_and_trace(capsys, tmp_path, monkeypatch):
+    """`meshmark copy` records each recipient's copy in the registry of the settings; `meshmark
+    trace` names the one that leaked (exit 0) and no one for the cover (exit 1)."""
+    monkeypatch.setenv("MESHMARK_REGISTRY_PATH", str(tmp_path / "copies.sqlite3"))
+    cover = tmp_path / "rocker.obj"
+    cover.write_bytes(shared_mesh_path("rocker-arm.obj").read_bytes())
+    for who in ("alice", "bob"):
+        code, out, err = run(capsys, "copy", str(cover), str(tmp_path / f"{who}.obj"), "--key", KEY,
+                             "--recipient", who, "--asset-id", "rocker")
+        assert code == EXIT_OK, err
+        issued = json.loads(out)
+        assert issued["asset_id"] == "rocker" and issued["recipient"] == who and issued["score"] > 8
+    code, out, _ = run(capsys, "trace", str(tmp_path / "bob.obj"), "--key", KEY, "--asset-id", "rocker")
+    assert code == EXIT_OK and json.loads(out)["accused"] == ["bob"]
+    code, out, _ = run(capsys, "trace", str(cover), "--key", KEY)
+    assert code == EXIT_NOT_DETECTED and json.loads(out)["verdict"] == "no-one"
+    code, _, err = run(capsys, "trace", str(cover), "--key", KEY, "--asset-id", "other")
+    assert code == EXIT_USAGE and "no copies" in err
+    code, _, err = run(capsys, "copy", str(cover), str(tmp_path / "a2.obj"), "--key", KEY, "--recipient",
+                       "alice", "--asset-id", "rocker", "--method", "planes")
+    assert code == EXIT_USAGE and "ellipsoids" in err
