@@ -90,6 +90,11 @@ def parser() -> argparse.ArgumentParser:
     # asset pipelines (issue 13): gltfpack and glTF-Transform from npm; not part of "all"
     sub.add_parser("pipelines", parents=[common],
                    help="gltfpack / glTF-Transform on marked GLBs, and marking their outputs")
+    # leak tracing (issue 18): fingerprinted copies, collusions, innocents, the registry; not in "all"
+    from bench.tracing import add_arguments as tracing_arguments
+
+    tracing_arguments(sub.add_parser("tracing", parents=[common],
+                                     help="leak tracing: copies, averages, innocents, SQLite vs PostgreSQL"))
     # byte-identity of every engine answer against a committed baseline (refactorings); not in "all"
     ident = sub.add_parser("identical", parents=[common],
                            help="fingerprint every engine answer on the shared meshes, or compare with one")
@@ -124,6 +129,12 @@ def main(argv: list[str] | None = None) -> int:
         from bench import http_service
 
         print(http_service.run(Path(args.out)))
+        return 0
+    if args.suite == "tracing":
+        from bench import tracing
+
+        tracing.run(args)
+        print(f"[bench] tracing -> {Path(args.out) / 'tracing.md'}")
         return 0
     if args.suite == "identical":
         from bench import identical

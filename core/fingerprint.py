@@ -6,8 +6,9 @@ A copy for a recipient carries that recipient's codeword ``c`` of ``L`` uniforml
 hashed slot assignment of :mod:`core.slots` so that a crop keeps every carrier's slot.
 
 Tracing reads the detector's soft per-carrier votes (:func:`core.detection._soft_values`,
-centred and de-whitened as :func:`core.detection._votes` does) and sums them per codeword bit:
-``y`` of shape ``(L,)``, ``y[j] > 0`` leaning to bit 0.  The score of a recipient is the
+centred and de-whitened as :func:`core.detection._votes` does) and sums them per codeword bit,
+divided by the square root of the bit's carrier count: ``y`` of shape ``(L,)``, ``y[j] > 0``
+leaning to bit 0.  The score of a recipient is the
 normalised correlation
 
     S = sum_j y[j] (1 - 2 c[j]) / ||y||.
@@ -171,7 +172,8 @@ def embed_codeword(data: bytes, options: Options, *, codeword: np.ndarray | None
 
 def codeword_votes(analyses: list[Analysis], key: str | bytes, length: int,
                    variants: tuple[bool, ...] = VARIANTS) -> np.ndarray:
-    """Per codeword bit, the sum of the carriers' de-whitened soft votes, one row per variant.
+    """Per codeword bit, the carriers' de-whitened soft votes summed and divided by the square root
+    of their count, one row per variant.
 
     Parameters
     ----------
@@ -192,7 +194,10 @@ def codeword_votes(analyses: list[Analysis], key: str | bytes, length: int,
     for r, adaptive in enumerate(variants):
         slots, raw, sign = _votes(analyses, _soft_values(analyses, adaptive), key, length, False, cache)
         if len(slots):
-            out[r] = np.bincount(slots, raw, minlength=length) * sign
+            # each bit's vote sum in units of its own spread (sum / sqrt(n)): on meshes with
+            # repeated labels a few bits gather hundreds of carriers and would outweigh the rest
+            n = np.maximum(np.bincount(slots, minlength=length), 1)
+            out[r] = np.bincount(slots, raw, minlength=length) * sign / np.sqrt(n)
     return out
 
 
