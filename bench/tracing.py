@@ -7,7 +7,7 @@ codewords, :mod:`core.fingerprint`); ``--copies`` of them get a real marked file
 * one leaked copy: untouched, uniform noise 0.3 %, Laplacian smoothing 0.1 x 10, crop to 50 %
   (a plane cut along a random direction);
 * averages, vertex by vertex, of 2 and of 3 different copies (every pair / triple up to
-  ``--collusions``);
+  ``--collusions``), and 2 copies swapping halves (a random plane through the centroid);
 * innocents only: the unmarked mesh under a fresh key per trial, a marked copy read with a wrong
   key, and a copy of another asset (another mesh, noise 0.1 %) traced against this asset's
   registry; each trial also draws fresh innocent codewords.
@@ -144,6 +144,17 @@ def run_asset(
             v = sum(asset.copies[i] for i in g) / c
             rows.append(_verdict(asset.scores(v, asset.faces), set(g), tests))
         out["cases"][f"average of {c}"] = rows
+    # two colluders swap regions: one's vertices on one side of a random plane through the
+    # centroid, the other's on the other side
+    pairs = list(itertools.combinations(range(n), 2))
+    rng.shuffle(pairs)
+    rows = []
+    for i, j in pairs[: args.collusions]:
+        d = rng.normal(size=3)
+        side = (asset.cover - asset.cover.mean(axis=0)) @ d > 0
+        v = np.where(side[:, None], asset.copies[i], asset.copies[j])
+        rows.append(_verdict(asset.scores(v, asset.faces), {i, j}, tests))
+    out["cases"]["halves of 2 swapped"] = rows
     # innocents only: fresh innocent codewords every trial
     innocents: dict[str, list[dict[str, Any]]] = {
         "unmarked, fresh key": [],
@@ -275,7 +286,9 @@ def _summary(results: list[dict[str, Any]]) -> list[list[Any]]:
     rows = []
     for r in results:
         for case, trials in r["cases"].items():
-            guilty = 1 if case in SINGLE else int(case.rsplit(" ", 1)[1])
+            guilty = (
+                1 if case in SINGLE else 2 if case == "halves of 2 swapped" else int(case.rsplit(" ", 1)[1])
+            )
             rows.append(
                 [
                     r["mesh"],
