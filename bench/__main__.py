@@ -134,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
         from bench import tracing
 
         tracing.run(args)
-        print(f"[bench] tracing -> {Path(args.out) / 'tracing.md'}")
+        written = "tracing_registry.md" if args.registry_only else "tracing.md"
+        print(f"[bench] tracing -> {Path(args.out) / written}")
         return 0
     if args.suite == "identical":
         from bench import identical
