@@ -6,8 +6,10 @@ relative to the repository root).  Tests needing them skip with a visible reason
 
 from __future__ import annotations
 
+import atexit
 import os
-from collections.abc import Iterator
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -17,6 +19,14 @@ MESHES_DIR = (ROOT / os.environ.get("MESHMARK_TEST_MESHES", "../shared/meshes"))
 if "MESHMARK_TEST_MESHES" not in os.environ and not MESHES_DIR.is_dir():
     # a clone outside the workspace (CI's clean clone): the workspace's shared folder
     MESHES_DIR = Path("/work/shared/meshes")
+
+# apps and servers started with default settings (``app.main.app`` is built when it is imported,
+# before any fixture runs) keep their registry of copies in a temporary folder, not in the working
+# directory, unless the run sets MESHMARK_REGISTRY_PATH itself
+if "MESHMARK_REGISTRY_PATH" not in os.environ:
+    _REGISTRY_DIR = tempfile.mkdtemp(prefix="meshmark-test-registry-")
+    os.environ["MESHMARK_REGISTRY_PATH"] = str(Path(_REGISTRY_DIR) / "registry.sqlite3")
+    atexit.register(shutil.rmtree, _REGISTRY_DIR, True)
 
 SHARED_MESHES = [
     "teapot.stl", "monkey.glb", "sink.3ds", "spot.obj", "decimated-max.obj", "fandisk.off",
@@ -31,19 +41,6 @@ def shared_mesh_path(name: str) -> Path:
     if not path.is_file():
         pytest.skip(f"shared mesh {name} not found in {MESHES_DIR} (set MESHMARK_TEST_MESHES)")
     return path
-
-
-@pytest.fixture(scope="session", autouse=True)
-def _registry_outside_the_repository(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
-    """Apps and servers started with default settings keep their registry of copies in a temporary
-    folder, not in the working directory (``MESHMARK_REGISTRY_PATH``, unless the run sets it)."""
-    name = "MESHMARK_REGISTRY_PATH"
-    before = os.environ.get(name)
-    if before is None:
-        os.environ[name] = str(tmp_path_factory.mktemp("registry") / "registry.sqlite3")
-    yield
-    if before is None:
-        os.environ.pop(name, None)
 
 
 @pytest.fixture
