@@ -43,7 +43,15 @@ from core.embedding import embed_parts
 from core.errors import CapacityError, PayloadError
 from core.formats import DEFAULT_LIMITS, FORMATS, Limits, read_mesh
 from core.options import Options
-from core.pipeline import Milestones, _analyses, _distortion, _no_progress, _scaled, _usable_parts
+from core.pipeline import (
+    Milestones,
+    _analyses,
+    _distortion,
+    _no_progress,
+    _part_quantizer,
+    _scaled,
+    _usable_parts,
+)
 from core.reports import EmbeddedFile, EmbedReport, Progress
 from core.slots import HASHED_FROM
 
@@ -141,7 +149,7 @@ def embed_codeword(data: bytes, options: Options, *, codeword: np.ndarray | None
     cw = np.asarray(codeword, np.uint8)
     L = len(cw)
     vs, stats, final = embed_parts(meshes, key, cw ^ whitening(key, L), method, s,
-                                   quantize=doc.quantize, prepared=prepared)
+                                   quantize=_part_quantizer(doc, parts, doc.decimals), prepared=prepared)
     report(Milestones.VERIFIED)
     carriers = sum(st.carriers for st in stats)
     if carriers < HASHED_FROM * L:
@@ -164,7 +172,7 @@ def embed_codeword(data: bytes, options: Options, *, codeword: np.ndarray | None
                       carriers=carriers, copies=round(carriers / L, 3),
                       skipped=sum(st.skipped for st in stats), vertices_moved=moved, rms_displacement=rms,
                       max_displacement=mx, hausdorff=haus, decimals=doc.decimals, cap_factor=1.0, parts=info)
-    out = doc.write(new)
+    out = doc.write(new, decimals=doc.decimals) if doc.decimals is not None else doc.write(new)
     report(1.0)
     spec = FORMATS[doc.format]
     return Fingerprinted(EmbeddedFile(out, rep, doc.format, spec.media_type, spec.extension), cw, score)
