@@ -39,7 +39,8 @@ GLTFPACK = "gltfpack@1.3.0"
 GLTF_TRANSFORM = "@gltf-transform/cli@4.5.1"
 #: a mesh too coarse for a 32-bit payload (CesiumMilkTruck: 206 carriers, two meshes, one of three
 #: primitives) carries the key-derived code instead
-MESHES = ["Duck.glb", "spot.obj", "fandisk.off", "rocker-arm.obj", "bun_zipper.ply", "CesiumMilkTruck.glb"]
+MESHES = ["Duck.glb", "spot.obj", "fandisk.off", "rocker-arm.obj", "bun_zipper.ply", "horse.ply",
+          "armadillo.obj", "CesiumMilkTruck.glb"]
 #: name -> (tool, arguments with {i} and {o})
 PIPELINES: dict[str, tuple[str, list[str]]] = {
     "gltfpack": ("gltfpack", ["-i", "{i}", "-o", "{o}"]),
@@ -124,7 +125,7 @@ def detection(data: bytes, method: str, payload: str | None) -> dict[str, Any]:
 
 
 def run(args: Any) -> None:
-    from core.errors import CapacityError
+    from core.errors import CapacityError, MeshMarkError
     from core.pipeline import embed_file
 
     out_dir = Path(args.out)
@@ -138,6 +139,7 @@ def run(args: Any) -> None:
     names = args.meshes or MESHES
     rng = np.random.default_rng(args.seed)
     rows: list[dict[str, Any]] = []
+    refused: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         for name in names:
@@ -148,10 +150,16 @@ def run(args: Any) -> None:
             for method in METHODS:
                 t = time.perf_counter()
                 try:
-                    marked = embed_file(original, KEY, filename="a.glb", payload=payload, method=method).data
-                except CapacityError:  # too coarse for 32 bits: the key-derived code
-                    payload = None
-                    marked = embed_file(original, KEY, filename="a.glb", method=method).data
+                    try:
+                        marked = embed_file(original, KEY, filename="a.glb", payload=payload,
+                                            method=method).data
+                    except CapacityError:  # too coarse for 32 bits: the key-derived code
+                        payload = None
+                        marked = embed_file(original, KEY, filename="a.glb", method=method).data
+                except MeshMarkError as exc:  # refused (e.g. moves past the displacement ceiling)
+                    refused.append({"mesh": name, "method": method, "reason": str(exc)})
+                    print(f"[pipelines] {name} {method}: refused: {exc}", flush=True)
+                    continue
                 marked_path = work / f"{src.stem}.{method}.glb"
                 marked_path.write_bytes(marked)
                 print(f"[pipelines] {name} {method}: embedded in {time.perf_counter() - t:.1f} s", flush=True)
@@ -195,11 +203,12 @@ def run(args: Any) -> None:
                     print(f"[pipelines] {name} {method} {pipeline}: then={row['then_exact']} "
                           f"first={row.get('first_exact', '-')}", flush=True)
     save_json(out_dir / "pipelines.json", {"environment": env, "tools": [GLTFPACK, GLTF_TRANSFORM],
-                                            "key": KEY, "rows": rows})
-    (out_dir / "pipelines.md").write_text(report(rows, env, title))
+                                            "key": KEY, "rows": rows, "refused": refused})
+    (out_dir / "pipelines.md").write_text(report(rows, env, title, refused))
 
 
-def report(rows: list[dict[str, Any]], env: dict[str, Any], title: str) -> str:
+def report(rows: list[dict[str, Any]], env: dict[str, Any], title: str,
+           refused: list[dict[str, Any]] | None = None) -> str:
     extra = [f"- Tools: `{GLTFPACK}`, `{GLTF_TRANSFORM}` from the npm registry, default settings",
              "- Payload: 32 random bits per mesh (seeded), key `" + KEY + "`, default strength; a mesh "
              "too coarse for them (CesiumMilkTruck) carries the key-derived 32-bit code, and *exact* "
@@ -214,6 +223,10 @@ def report(rows: list[dict[str, Any]], env: dict[str, Any], title: str) -> str:
     out.append(f"- pipeline -> embed -> detect: exact payload in **{ok_first} / {len(first)}** rows; "
                f"the marked file valid for the Khronos glTF validator (`gltf-transform validate`: no "
                f"errors) in {sum(bool(r.get('first_valid')) for r in first)} / {len(first)}\n")
+    if refused:
+        out.append(f"- refused before any pipeline (the mesh cannot carry the mark within the engine's "
+                   f"limits; the refusal names an alternative): {len(refused)} mesh x method pairs, "
+                   f"listed at the end\n")
     out.append("\n## Embed -> pipeline -> detect\n\n")
     out.append(md_table(
         ["mesh", "method", "pipeline", "detected", "exact payload", "bit errors", "vertices in -> out",
@@ -242,8 +255,12 @@ def report(rows: list[dict[str, Any]], env: dict[str, Any], title: str) -> str:
                    "re-triangulation of that size (bench/results/robustness.md, simplification; the engine "
                    "issue on re-triangulation); the truck carries only the key-derived code at about 4 "
                    "carriers per codeword bit, and optimize also joins its primitives and meshes before "
-                   "removing 3 % of its vertices:\n\n")
+                   "removing 3 % of its vertices (where it is marked at all):\n\n")
         out.append(md_table(["mesh", "method", "vertices removed", "bit errors (of 32)", "exact payload"],
                             [[r["mesh"], r["method"], f"{1 - r['vertices_out'] / r['vertices_in']:.1%}",
                               r["then_bit_errors"], r["then_exact"]] for r in simplified], "llrrl"))
+    if refused:
+        out.append("\n## Refused embeddings\n\n")
+        out.append(md_table(["mesh", "method", "refusal"],
+                            [[r["mesh"], r["method"], r["reason"]] for r in refused], "lll"))
     return "".join(out)
