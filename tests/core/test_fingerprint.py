@@ -74,7 +74,8 @@ def test_false_accusation_is_the_union_bound_and_the_threshold_its_inverse() -> 
 
 def test_codeword_length_keeps_four_carriers_per_bit() -> None:
     assert codeword_length(2393) == 598
-    assert codeword_length(10**7) == 8192
+    assert codeword_length(10**7) == codeword_length(4 * 1024) == 1024  # the cap
+    assert codeword_length(4 * 1023 + 3) == 1023
     with pytest.raises(CapacityError):
         codeword_length(255)
 
