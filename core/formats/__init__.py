@@ -19,6 +19,7 @@ from core.formats.base import (
     Limits,
     MeshDocument,
     MeshPart,
+    check_coordinates,
     fan_triangulate,
     weld,
 )
@@ -62,7 +63,7 @@ def detect_format(data: bytes, filename: str | None = None) -> str:
     ext = filename.rsplit(".", 1)[-1].lower() if filename and "." in filename else None
     named = _BY_EXTENSION.get(ext or "")
     if found is None:
-        what = f"'.{ext}' file" if ext else "file"
+        what = f"'.{ext}' file" if named is not None else "file"  # no extension of the caller's echoed
         hint = named.why_not(data) if named is not None and named.why_not is not None else ""
         families = list(dict.fromkeys(spec.family for spec in FORMATS.values()))
         raise UnsupportedFormatError(f"unsupported format: this {what} is not {spoken_list(families)}{hint}")
@@ -89,4 +90,7 @@ def read_mesh(data: bytes, filename: str | None = None, limits: Limits = DEFAULT
     """
     limits.check("bytes", len(data))
     spec = FORMATS[detect_format(data, filename)]
-    return spec.read(data, limits, spec.name)
+    doc = spec.read(data, limits, spec.name)
+    for i, part in enumerate(doc.parts):
+        check_coordinates(part.vertices, f"mesh part {i}" if len(doc.parts) > 1 else None)
+    return doc

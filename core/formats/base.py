@@ -39,6 +39,24 @@ class Limits:
 
 DEFAULT_LIMITS = Limits()
 
+#: Largest coordinate magnitude read.  The engine squares and cubes lengths (covariances, their
+#: eigenvalues); beyond this, a finite file could overflow float64 there (1e154 did, in the
+#: bounding-box diagonal), so it is refused as malformed instead.  float32 files store at most 3.4e38.
+MAX_COORDINATE = 1e36
+
+
+def check_coordinates(vertices: np.ndarray, where: str | None = None) -> None:
+    """Refuse positions whose magnitude exceeds :data:`MAX_COORDINATE` (NaN included).
+
+    Raises
+    ------
+    MeshFormatError
+        A coordinate is not a number or larger in magnitude than :data:`MAX_COORDINATE`.
+    """
+    for col in np.asarray(vertices).T:  # column by column: faster than reducing an (n, 3) array
+        if col.size and not max(-float(col.min()), float(col.max())) <= MAX_COORDINATE:
+            raise MeshFormatError(f"a coordinate is beyond +-{MAX_COORDINATE:g} (or not a number)", where)
+
 
 @dataclass
 class MeshPart:

@@ -10,7 +10,9 @@ Strips and fans are converted to triangles for the engine; POINTS and LINES prim
 0-3) are skipped and counted.  One :class:`MeshPart` per glTF *mesh*
 (name from ``mesh.name`` or ``"mesh{i}"``) combines its triangle primitives; positions are welded
 bit-exactly within the mesh (UV seams, split normals), and ``slot_to_vertex`` lists every
-``POSITION`` element of every triangle primitive of the mesh, primitive after primitive.
+``POSITION`` element of every triangle primitive of the mesh, primitive after primitive (an
+accessor shared by several primitives of the mesh once).  Meshes reusing each other's positions
+may ask for at most :data:`MAX_REUSE` times the work the file's bytes hold.
 
 Nodes are ignored: the engine works on each mesh's *local* coordinates, so a mesh placed by
 several nodes (instancing) is one part, and the watermark moves every instance the same way.
@@ -50,7 +52,7 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import DegenerateMeshError, MeshFormatError
+from core.errors import DegenerateMeshError, LimitExceededError, MeshFormatError
 from core.formats._binary import finite_float64, moved_slots, patch_xyz
 from core.formats.base import FormatSpec, Limits, MeshDocument, MeshPart, weld
 from core.formats.gltf_accessors import FLOAT, POSITION_DTYPES, Encoding
@@ -75,6 +77,11 @@ MAX_JSON_DEPTH = 64
 _INDEX_DTYPES: dict[int, np.dtype] = {5121: np.dtype("<u1"), 5123: np.dtype("<u2"), 5125: np.dtype("<u4")}
 _TRIANGLE_MODES = (4, 5, 6)
 _SKIPPED_MODES = (0, 1, 2, 3)
+#: Slots and faces of all meshes together may be this many times the file's bytes / 12 (one
+#: float32 triple), plus :data:`REUSE_ALLOWANCE`: meshes and primitives may share data, not
+#: multiply the work a file asks for.
+MAX_REUSE = 8
+REUSE_ALLOWANCE = 1 << 16
 _KEY_SHIFT = 40  # (buffer << 40) | byte offset identifies a stored position element
 #: buffer ids from here on are not buffers of the file: decoded meshopt views (+ view index),
 #: decoded Draco positions (+ 2**20 + primitive number) and positions with no storage at all
@@ -83,8 +90,12 @@ VIRTUAL = 1 << 24
 _DRACO = VIRTUAL + (1 << 20)
 UNSTORED = VIRTUAL + (1 << 22)
 
-# a complete JSON string literal (unrolled loop: linear time, no backtracking)
-_STRING_RE = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"')
+# a JSON string literal, or an unterminated one up to the end of the text: always matches at its
+# first quote, so that scanning is linear even when the string never closes (an unclosed string
+# of escaped quotes made the strict pattern retry at every quote: quadratic)
+_STRING_RE = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*(?:"|\\?\Z)', re.DOTALL)
+# an embedded data: URI string, up to its closing quote (base64 has no quote)
+_DATA_URI_RE = re.compile(rb'"[dD][aA][tT][aA]:[^"]*"')
 # string literals, other scalars (numbers, true, false, null) and structural characters
 _TOKEN_RE = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"|[{}\[\]:,]|[^\s{}\[\]:,"]+')
 _ASSET_RE = re.compile(rb'"asset"\s*:')
@@ -561,7 +572,7 @@ def _as_int(obj: dict[str, Any], key: str, where: str, default: int | None = Non
 
 def _item(items: list[Any], index: Any, what: str, where: str) -> dict[str, Any]:
     if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < len(items):
-        raise MeshFormatError(f"{what} index {index!r} out of range", where)
+        raise MeshFormatError(f"{what} index out of range (there are {len(items)})", where)
     item = items[index]
     if not isinstance(item, dict):
         raise MeshFormatError("must be an object", f"{what}[{index}]")
@@ -639,6 +650,10 @@ class _Reader:
         return self._document(text, (js, jl))
 
     def read_gltf(self) -> GltfDocument:
+        # the JSON size is checked on the bytes, before parsing builds anything from them (60 MB
+        # of "{}" took 32 s and 1.9 GB to parse); embedded data: URIs do not count, as below
+        embedded = sum(m.end() - m.start() for m in _DATA_URI_RE.finditer(self.data))
+        self.limits.check("json_bytes", len(self.data) - embedded)
         try:
             text = self.data.decode("utf-8")
         except UnicodeDecodeError:
@@ -905,6 +920,7 @@ class _Reader:
                 raise MeshFormatError("must be an object", mwhere)
             pos_list, tri_list, buf_list, off_list, enc_list = [], [], [], [], []
             n_slots = 0
+            block_of: dict[int, tuple[int, int]] = {}  # POSITION accessor -> (first slot, count) here
             for pi, prim in enumerate(_as_list(mesh, "primitives", mwhere)):
                 pwhere = f"{mwhere}.primitives[{pi}]"
                 if not isinstance(prim, dict):
@@ -929,6 +945,7 @@ class _Reader:
                     self.total_slots += count
                     total_faces += len(tri)
                     limits.check("faces", total_faces)
+                    _check_work(self.total_slots + total_faces, len(self.data))
                     pos_list.append(pos)
                     tri_list.append(tri + n_slots if n_slots else tri)
                     buf_list.append(np.full(count, vid, dtype=np.int64))
@@ -937,9 +954,13 @@ class _Reader:
                     positions[pos_index] = (buf_list[-1], off_list[-1], enc_id)
                     n_slots += count
                     continue
-                pos, bufs, offs, enc_id = self._position_slots(pos_index, awhere)
-                count = len(pos)
-                self.total_slots += count
+                shared = pos_index in block_of  # primitives of one mesh sharing positions: slots once
+                if shared:
+                    count = block_of[pos_index][1]
+                else:
+                    pos, bufs, offs, enc_id = self._position_slots(pos_index, awhere)
+                    count = len(pos)
+                    self.total_slots += count
                 if "indices" in prim:
                     idx_index = prim["indices"]
                     iacc = _item(accessors, idx_index, "accessors", pwhere)
@@ -952,6 +973,7 @@ class _Reader:
                     n_faces = icount // 3 if mode == 4 else max(icount - 2, 0)
                     total_faces += n_faces
                     limits.check("faces", total_faces)
+                    _check_work(self.total_slots + total_faces, len(self.data))
                     # a view of the stored indices: weld() converts the triangles to int64 once
                     seq = np.ndarray(
                         (icount,), dtype=dtype, buffer=self._buffer(ib), offset=istart, strides=(istride,)
@@ -962,10 +984,14 @@ class _Reader:
                 else:
                     total_faces += count // 3 if mode == 4 else max(count - 2, 0)
                     limits.check("faces", total_faces)
+                    _check_work(self.total_slots + total_faces, len(self.data))
                     seq = np.arange(count, dtype=np.int64)
-                pos_list.append(pos)
                 tri = _triangles(seq, mode)
-                tri_list.append(tri.astype(np.int64) + n_slots if n_slots else tri)
+                first = block_of.setdefault(pos_index, (n_slots, count))[0]
+                tri_list.append(tri.astype(np.int64) + first if first else tri)
+                if shared:
+                    continue
+                pos_list.append(pos)
                 buf_list.append(bufs)
                 off_list.append(offs)
                 enc_list.append(np.full(count, enc_id, dtype=np.int64))
@@ -1007,6 +1033,18 @@ class _Reader:
             draco=self.draco,
             skipped=self.skipped,
         )
+
+
+def _check_work(work: int, file_bytes: int) -> None:
+    """Refuse files whose meshes reuse stored data for much more work than the file holds.
+
+    The work grows with the slots and faces of all meshes; a small file whose meshes all point at
+    one accessor (a 93 KB GLB of 256 meshes: 10 s of work) would make it grow without the bytes.
+    Stored once, a slot takes 12 bytes and a face at least 3, so the work stays linear in size.
+    """
+    allowed = MAX_REUSE * (file_bytes // 12) + REUSE_ALLOWANCE
+    if work > allowed:
+        raise LimitExceededError("slots and faces (shared data)", work, allowed)
 
 
 def _ownership(

@@ -109,7 +109,7 @@ def read(data: bytes, limits: Limits, name: str = "off") -> OffDocument:
     if m is None:
         raise MeshFormatError("missing OFF header keyword", f"line {int(content[0]) + 1}")
     if m.group(4) or m.group(5):
-        raise MeshFormatError(f"OFF variant {head[0].decode()!r} (not 3-D) is not supported", "line 1")
+        raise MeshFormatError("OFF variant of another dimension than 3 is not supported", "line 1")
     rest = head[1:]
     used = 1
     if rest and rest[0].upper() == b"BINARY":

@@ -185,7 +185,7 @@ class _Reader:
         if face_list is None or face_list[1] == 0:
             return  # no triangles: nothing the engine can use
         if vertex_list is None:
-            raise MeshFormatError(f"object {name!r} has faces but no vertex list", f"byte {start - 6}")
+            raise MeshFormatError("object has faces but no vertex list", f"byte {start - 6}")
         vstart, nv = vertex_list
         fstart, nf = face_list
         self.limits.check("meshes", len(self.parts) + 1)
@@ -198,9 +198,9 @@ class _Reader:
         faces = faces.astype(np.int64)
         if int(faces.max()) >= nv:
             raise MeshFormatError(
-                f"object {name!r}: face corner {int(faces.max())} >= vertex count {nv}", f"byte {fstart}"
+                f"face corner {int(faces.max())} >= vertex count {nv} of its object", f"byte {fstart}"
             )
-        positions = finite_float64(positions, f"object {name!r} vertex list")
+        positions = finite_float64(positions, f"vertex list of the object at byte {start - 6}")
         vertices, welded, slot_to_vertex = weld(positions, faces)
         self.parts.append(MeshPart(name=name, vertices=vertices, faces=welded, slot_to_vertex=slot_to_vertex))
         self.offsets.append(vstart + 12 * np.arange(nv, dtype=np.int64))
