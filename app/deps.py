@@ -72,11 +72,13 @@ async def require_caller(
                        headers={"WWW-Authenticate": "Bearer"})
 
 
-_KEY_FIELD = Form(description=f"Secret watermark key, 1-{MAX_KEY_CHARS} characters, no control characters. "
-                  "Give it here or in the X-Watermark-Key header: exactly one of the two.",
+_KEY_FIELD = Form(description=f"Secret watermark key, 1-{MAX_KEY_CHARS} characters, none a control, format "
+                  "or separator character (Unicode Cc, Cf, Zl, Zp). Give it here or in the "
+                  "X-Watermark-Key header: exactly one of the two.",
                   json_schema_extra=KEY_SCHEMA)
 _KEY_HEADER = Header(description="The watermark key, instead of the `key` form field: its UTF-8 bytes (the "
-                     "pattern reads them as Latin-1, as HTTP does).", json_schema_extra=KEY_HEADER_SCHEMA)
+                     "pattern reads them as Latin-1, as HTTP does); the characters the form field "
+                     "refuses are refused here too.", json_schema_extra=KEY_HEADER_SCHEMA)
 
 
 async def optional_watermark_key(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import re
+import unicodedata
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,14 +28,22 @@ MAX_KEY_CHARS = 1024
 #: a key given as bytes: at most the UTF-8 size of the longest text key
 MAX_KEY_BYTES = 4 * MAX_KEY_CHARS
 
-#: what a key may contain (no control characters), as a JSON Schema pattern and for :func:`check_key`
-KEY_PATTERN = "^[^\\u0000-\\u001f\\u007f]*$"
-_KEY_TEXT = re.compile(KEY_PATTERN)
+#: Unicode categories a key may not contain: control (Cc: NUL, newline, U+0085...), format (Cf:
+#: zero-width and bidirectional marks...), line and paragraph separators (Zl, Zp), surrogates (Cs).
+#: Each is invisible or reorders text: two keys that look the same could differ.
+REFUSED_KEY_CATEGORIES = frozenset({"Cc", "Cf", "Zl", "Zp", "Cs"})
+#: the same rule as a JSON Schema pattern: the code points of those categories in the Basic
+#: Multilingual Plane (Unicode 14; surrogates cannot be sent as UTF-8 anyway).  The few format
+#: characters above U+FFFF (U+110BD, U+E0001...) are refused by :func:`check_key` alone.
+KEY_PATTERN = (
+    "^[^\\u0000-\\u001f\\u007f-\\u009f\\u00ad\\u0600-\\u0605\\u061c\\u06dd\\u070f\\u0890\\u0891"
+    "\\u08e2\\u180e\\u200b-\\u200f\\u2028-\\u202e\\u2060-\\u2064\\u2066-\\u206f\\ufeff\\ufff9-\\ufffb]*$"
+)
 _BITS = re.compile(r"[01]+")
 
 
 def check_key(key: str | bytes) -> str | bytes:
-    """The key, when it is 1 to :data:`MAX_KEY_CHARS` characters without control characters.
+    """The key, when it is 1 to :data:`MAX_KEY_CHARS` characters, none in :data:`REFUSED_KEY_CATEGORIES`.
 
     A key is used exactly as given (no trimming): a stray newline (``curl -F key=<file``) is
     refused rather than silently making a different key.  Bytes keys: 1 to :data:`MAX_KEY_BYTES`.
@@ -47,8 +56,9 @@ def check_key(key: str | bytes) -> str | bytes:
         raise PayloadError("a watermark key is required")
     if len(key) > MAX_KEY_CHARS:
         raise PayloadError(f"the key must be at most {MAX_KEY_CHARS} characters")
-    if not _KEY_TEXT.fullmatch(key):
-        raise PayloadError("the key must not contain control characters (newline, tab, NUL...)")
+    if any(unicodedata.category(c) in REFUSED_KEY_CATEGORIES for c in key):
+        raise PayloadError("the key must not contain control, format or separator characters "
+                           "(newline, tab, NUL, U+0085, zero-width or bidirectional marks, U+2028...)")
     return key
 
 

@@ -109,7 +109,7 @@ def _run(records: JobRecords, blobs: BlobStore, job_id: str, *, timeout: float,
         key = task.key if task is not None else None
         if isinstance(failure, failures.WorkerBug):
             log.error("job %s failed: %s", job_id, failures.details(failure, key))
-        problem = failures.problem(failure, key=key, memory_mb=memory_mb, timeout=timeout)
+        problem = failures.problem(failure, memory_mb=memory_mb, timeout=timeout)
         return "failed", problem.to_dict(), None
 
 

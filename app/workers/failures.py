@@ -56,11 +56,16 @@ def capture(exc: Exception) -> Exception:
     return WorkerBug(type(exc).__name__, traceback.format_exc())
 
 
-def problem(failure: BaseException, *, key: str | None, memory_mb: int, timeout: float) -> ProblemError:
+def problem(failure: BaseException, *, memory_mb: int, timeout: float) -> ProblemError:
     """The caller's problem for a captured failure, or a failure of the worker process: the
-    engine's message (the key cut out), or a fixed public message.  Logging is the caller's."""
+    engine's message, or a fixed public message.  Logging is the caller's.
+
+    The engine's messages are built from what it knows (counts, positions, names of its own
+    fields), never from the file's text or the key, so nothing is cut out of them: cutting the
+    key out by substring garbled details when the key was a common word ("56-bit [key]word") and
+    missed it in escaped forms."""
     if isinstance(failure, EngineFailure):
-        return problem_for_core_error(failure.exc_type, redact(failure.message, key), failure.extensions)
+        return problem_for_core_error(failure.exc_type, failure.message, failure.extensions)
     if isinstance(failure, WorkerOutOfMemory):
         return ProblemError(WORKER_FAILED, f"the worker ran out of memory (limit {memory_mb} MiB)")
     if isinstance(failure, ProcessExpired):

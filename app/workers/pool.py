@@ -302,7 +302,7 @@ class WorkerPool:
             log.error("worker pool failure during %s task %s: %s", entry.kind, entry.task_id, exc)
         elif not isinstance(exc, failures.EngineFailure | failures.WorkerOutOfMemory):
             log.error("%s task %s failed: %s", entry.kind, entry.task_id, failures.details(exc, entry.key))
-        return failures.problem(exc, key=entry.key, memory_mb=self.memory_mb, timeout=self.timeout)
+        return failures.problem(exc, memory_mb=self.memory_mb, timeout=self.timeout)
 
 
 # -- in the worker process ------------------------------------------------------------------------

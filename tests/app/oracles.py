@@ -56,7 +56,8 @@ MESH_PROBLEMS = {
     "too-little-capacity",
     "too-large",
 }
-KEY_RULES = ("a watermark key is required", "give the key once")
+#: ...and the key's Unicode categories in the header, whose pattern can only say "UTF-8 bytes"
+KEY_RULES = ("a watermark key is required", "give the key once", "the key must not contain")
 #: refusals that depend on the server's settings, which no schema can say (which hosts a callback
 #: may reach: MESHMARK_CALLBACK_HOSTS, none by default)
 POLICY_PROBLEMS = {"callback-not-allowed"}

@@ -18,9 +18,8 @@ METHODS = ["ellipsoids", "planes"]
 
 
 payload_st = st.text(alphabet="01", min_size=1, max_size=64)
-#: any key the engine takes: text without control characters (UTF-8 text: bare st.characters()
-#: also draws lone surrogates, which the service's forms refuse as invalid UTF-8)
-key_st = st.text(st.characters(codec="utf-8", exclude_characters=[chr(c) for c in range(32)] + ["\x7f"]),
+#: any key the engine takes: UTF-8 text without control, format or separator characters
+key_st = st.text(st.characters(codec="utf-8", exclude_categories=["Cc", "Cf", "Zl", "Zp", "Cs"]),
                  min_size=1, max_size=40)
 
 

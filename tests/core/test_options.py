@@ -2,17 +2,31 @@
 
 from __future__ import annotations
 
+import re
+import unicodedata
+
 import pytest
 
 from core.errors import PayloadError
-from core.options import DEFAULT_STRENGTH, MAX_KEY_CHARS, METHODS, Options, check_key
+from core.options import (
+    DEFAULT_STRENGTH,
+    KEY_PATTERN,
+    MAX_KEY_CHARS,
+    METHODS,
+    REFUSED_KEY_CATEGORIES,
+    Options,
+    check_key,
+)
 from core.tolerances import TOL
 
 
 @pytest.mark.parametrize(("fields", "message"), [
     ({"key": ""}, "a watermark key is required"),
     ({"key": "k" * (MAX_KEY_CHARS + 1)}, f"the key must be at most {MAX_KEY_CHARS} characters"),
-    ({"key": "line\n"}, "the key must not contain control characters"),
+    ({"key": "line\n"}, "the key must not contain control, format or separator characters"),
+    # control (U+0085 NEL, U+009B CSI), separator (U+2028), format (U+202E RLO, U+200B, U+E0001)
+    *(({"key": f"ab{c}cd"}, "the key must not contain control") for c in
+      ("\x85", "\x9b", "\u2028", "\u2029", "\u202e", "\u200b", "\ufeff", "\U000e0001")),
     ({"key": b""}, "a key given as bytes must be 1 to 4096 bytes"),
     ({"payload": ""}, "payload must be 1 to 256 characters, each '0' or '1'"),
     ({"payload": "0102"}, "payload must be 1 to 256 characters"),
@@ -51,3 +65,14 @@ def test_the_key_is_never_shown() -> None:
     options = Options(key="very secret key")
     assert "very secret" not in repr(options) and "very secret" not in str(options)
     assert check_key("é ☃") == "é ☃" and check_key(b"\x00\xff") == b"\x00\xff"
+
+
+def test_key_pattern_states_the_rule_for_the_basic_plane() -> None:
+    """KEY_PATTERN (the OpenAPI document's) refuses exactly the BMP characters check_key refuses."""
+    pattern = re.compile(KEY_PATTERN)
+    for code in range(0x10000):
+        c = chr(code)
+        if unicodedata.category(c) == "Cs":
+            continue  # not UTF-8: refused before any key check
+        refused = unicodedata.category(c) in REFUSED_KEY_CATEGORIES
+        assert (pattern.fullmatch(c) is None) == refused, hex(code)
