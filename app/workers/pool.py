@@ -228,8 +228,14 @@ class WorkerPool:
         return {e.task_id: e.pid for e in entries if e.pid is not None}
 
     def retry_after(self) -> int:
-        """Seconds until a slot is likely free: the queue ahead divided among the workers."""
-        return max(1, min(60, math.ceil(self._mean_seconds * self.pending / self.workers)))
+        """Seconds until a slot is likely free: the tasks admitted, at the mean time of a task,
+        divided among the workers.  The mean is that of the tasks finished lately, or of those
+        running now when they have already run longer (hostile uploads that each held a worker
+        for 85 s were answered ``Retry-After: 2``)."""
+        now = time.monotonic()
+        running = [now - e.started for e in self._entries.values() if e.started is not None]
+        mean = max(self._mean_seconds, sum(running) / len(running)) if running else self._mean_seconds
+        return max(1, min(max(60, math.ceil(self.timeout)), math.ceil(mean * self.pending / self.workers)))
 
     def refusal(self) -> ProblemError | None:
         """The ``busy`` problem (429 with ``Retry-After``) when every slot is taken, else None."""
@@ -281,13 +287,17 @@ class WorkerPool:
             self.outcomes[(entry.kind, "cancelled")] += 1
             raise
         except Exception as exc:
+            self._timed(entry)  # failures (time-outs above all) take worker time too
             problem = self._problem(entry, exc)
             self.outcomes[(entry.kind, problem.problem.slug)] += 1
             raise problem from None
-        if entry.started is not None:
-            self._mean_seconds = 0.8 * self._mean_seconds + 0.2 * (time.monotonic() - entry.started)
+        self._timed(entry)
         self.outcomes[(entry.kind, "ok")] += 1
         return result
+
+    def _timed(self, entry: _Entry) -> None:
+        if entry.started is not None:
+            self._mean_seconds = 0.8 * self._mean_seconds + 0.2 * (time.monotonic() - entry.started)
 
     def _problem(self, entry: _Entry, exc: Exception) -> ProblemError:
         if isinstance(exc, ProcessExpired):

@@ -11,6 +11,7 @@ import os
 import re
 import signal
 import threading
+import time
 
 import psutil
 
@@ -131,6 +132,19 @@ def test_full_queue_answers_429(big_ply, sphere_obj):
 
         assert client.delete(f"/v1/jobs/{job['id']}").json()["state"] == "cancelled"  # frees the slot
         assert wait_for(lambda: embed(client, "s.obj", sphere_obj).status_code == 200, timeout=30)
+
+
+def test_retry_after_counts_the_time_running_tasks_have_taken(slow_ply, sphere_obj):
+    # tasks that hold their worker long (hostile uploads: 85 s each) were answered Retry-After: 2,
+    # from the mean of the tasks finished earlier; the running ones' time counts now
+    with make_client(workers=1, queue_size=1) as client:
+        job = client.post("/v1/jobs/embed", files={"mesh": ("slow.ply", slow_ply)}, data={"key": KEY}).json()
+        assert wait_for(lambda: client.get(f"/v1/jobs/{job['id']}").json()["state"] == "running", timeout=30)
+        time.sleep(4)
+        response = embed(client, "s.obj", sphere_obj)
+        assert_problem(response, 429, "busy")
+        assert int(response.headers["retry-after"]) >= 4
+        client.delete(f"/v1/jobs/{job['id']}")
 
 
 def test_idle_worker_killed_between_requests(sphere_obj):
