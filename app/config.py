@@ -16,6 +16,8 @@ from core.formats.base import Limits
 
 MIB = 1024 * 1024
 
+#: shortest caller API key accepted (a key is a password that anyone may try over the network)
+MIN_API_KEY_CHARS = 16
 #: admission slots per worker process when ``queue_size`` is not set
 QUEUE_SLOTS_PER_WORKER = 8
 
@@ -94,8 +96,22 @@ class Settings(BaseSettings):
     @classmethod
     def _split_api_keys(cls, value: object) -> object:
         if isinstance(value, str):
-            return [k.strip() for k in value.split(",") if k.strip()]
+            keys = [k.strip() for k in value.split(",") if k.strip()]
+            if value.strip() and not keys:  # " , " must not turn authentication off unnoticed
+                raise ValueError("MESHMARK_API_KEYS is set but names no key (leave it empty to run "
+                                 "without authentication)")
+            return keys
         return value
+
+    @field_validator("api_keys")
+    @classmethod
+    def _long_api_keys(cls, keys: list[SecretStr]) -> list[SecretStr]:
+        short = sum(len(k.get_secret_value()) < MIN_API_KEY_CHARS for k in keys)
+        if short:
+            raise ValueError(f"{short} of the MESHMARK_API_KEYS {'is' if short == 1 else 'are'} shorter than "
+                             f"{MIN_API_KEY_CHARS} characters: use long random keys (python -c 'import "
+                             "secrets; print(secrets.token_urlsafe(24))')")
+        return keys
 
     @property
     def admission_slots(self) -> int:

@@ -6,11 +6,13 @@ themselves."""
 
 from __future__ import annotations
 
+import hashlib
 import hmac
 from typing import Annotated
 
 from fastapi import Depends, Form, Header, Request
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
+from starlette.datastructures import Headers
 
 from app.config import Settings
 from app.inputs import KEY_HEADER_SCHEMA, KEY_SCHEMA, key_from_header
@@ -53,23 +55,46 @@ _bearer = HTTPBearer(auto_error=False, description="One of MESHMARK_API_KEYS (wh
 _api_key = APIKeyHeader(name="X-API-Key", auto_error=False, description="Same keys as the bearer token.")
 
 
-async def require_caller(
-    settings: SettingsDep,
-    bearer: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-    api_key: Annotated[str | None, Depends(_api_key)],
-) -> None:
-    """Checks the caller's API key when ``MESHMARK_API_KEYS`` is set (otherwise anyone may call)."""
+def caller_id(api_key: str) -> str:
+    """Who a caller is, for job ownership: 128 bits of SHA-256 of the API key (the same in every
+    API process; an API key is long and random, so its hash reveals nothing usable)."""
+    return hashlib.sha256(api_key.encode()).hexdigest()[:32]
+
+
+def authenticate(settings: Settings, headers: Headers) -> str | None:
+    """The caller's :func:`caller_id`, from the request headers alone (None when
+    ``MESHMARK_API_KEYS`` is not set: anyone may call); ``unauthorized`` without a valid key.
+
+    Routes with a body call it before reading a byte of it (see :mod:`app.forms`)."""
     if not settings.api_keys:
-        return
-    given = bearer.credentials if bearer is not None else api_key
+        return None
+    scheme, _, credentials = headers.get("authorization", "").partition(" ")
+    given = credentials.strip() if scheme.lower() == "bearer" and credentials.strip() else None
+    if given is None:
+        given = headers.get("x-api-key")
     if given is not None:
         raw = given.encode()
         # compare with every key, without stopping early, so timing tells nothing
         matches = [hmac.compare_digest(raw, k.get_secret_value().encode()) for k in settings.api_keys]
         if any(matches):
-            return
+            return caller_id(given)
     raise ProblemError(UNAUTHORIZED, "send a valid API key as 'Authorization: Bearer <key>' or 'X-API-Key'",
                        headers={"WWW-Authenticate": "Bearer"})
+
+
+async def require_caller(
+    request: Request,
+    settings: SettingsDep,
+    bearer: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+    api_key: Annotated[str | None, Depends(_api_key)],
+) -> str | None:
+    """The caller (see :func:`authenticate`); ``bearer`` and ``api_key`` declare the two ways in
+    the OpenAPI document."""
+    del bearer, api_key
+    return authenticate(settings, request.headers)
+
+
+Caller = Annotated[str | None, Depends(require_caller)]
 
 
 _KEY_FIELD = Form(description=f"Secret watermark key, 1-{MAX_KEY_CHARS} characters, none a control, format "

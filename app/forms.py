@@ -25,7 +25,7 @@ from starlette.datastructures import FormData
 from starlette.types import Receive
 
 from app.callbacks import CallbackRefused, check_url
-from app.deps import OptionalWatermarkKey, SettingsDep, WatermarkKey
+from app.deps import OptionalWatermarkKey, SettingsDep, WatermarkKey, authenticate
 from app.inputs import PAYLOAD_SCHEMA, STRENGTH_SCHEMA
 from app.multipart import FormError, FormParser
 from app.problems import BAD_FORM, CALLBACK_NOT_ALLOWED, NOT_MULTIPART, ProblemError, problem_response
@@ -100,7 +100,7 @@ class StrictFormRoute(APIRoute):
         fields = _form_fields(self.dependant)
 
         async def strict_handler(request: Request) -> Response:
-            refusal = self.admit(request)
+            refusal = self.authenticate(request) or self.admit(request)
             if refusal is not None:
                 # the upload is read and dropped, not parsed: closing a socket with unread data
                 # makes the kernel reset the connection, and a client still sending could lose the
@@ -118,6 +118,17 @@ class StrictFormRoute(APIRoute):
 
     def admit(self, request: Request) -> ProblemError | None:
         """Called before the body is read: a problem to answer instead of parsing the upload."""
+        return None
+
+    @staticmethod
+    def authenticate(request: Request) -> ProblemError | None:
+        """The API key, checked from the headers before any other refusal and before the body is
+        read: a caller without a valid key learns nothing of the form or the load (no 422 or 429
+        before 401) and costs no parsing (60 MB of form took 21 s of the server's CPU first)."""
+        try:
+            authenticate(request.app.state.settings, request.headers)
+        except ProblemError as refusal:
+            return refusal
         return None
 
 

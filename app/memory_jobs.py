@@ -9,12 +9,11 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-import uuid
 from dataclasses import replace
 from typing import Any
 
 from app import callbacks
-from app.jobs import STATES, Job, check_room
+from app.jobs import STATES, Job, check_room, new_job_id
 from app.problems import INTERNAL, ProblemError
 from app.results import Rendered
 from app.workers.pool import WorkerPool
@@ -75,10 +74,11 @@ class LocalJobRunner:
         self.callback_secret = callback_secret
         self._watchers: set[asyncio.Task[None]] = set()
 
-    async def submit(self, task: Task, callback_url: str | None = None) -> Job:
+    async def submit(self, task: Task, callback_url: str | None = None, owner: str | None = None) -> Job:
         """Create a job for ``task``; raises a ``busy`` problem when the pool or the store is full."""
         await check_room(self.store, self.max_jobs, self.pool.retry_after())
-        job = Job(id=uuid.uuid4().hex, kind=task.kind, request_id=task.request_id, callback_url=callback_url)
+        job = Job(id=new_job_id(), kind=task.kind, request_id=task.request_id, callback_url=callback_url,
+                  owner=owner)
         await self.store.add(job)
         try:
             work = self.pool.submit(task, task_id=job.id, on_progress=lambda f: self._progress(job.id, f))

@@ -3,6 +3,7 @@
 
 from app.jobs.runner import Runner, check_room
 from app.jobs.status import JobStatus
-from app.jobs.store import FINISHED, STATES, Job, JobState, JobStore
+from app.jobs.store import FINISHED, STATES, Job, JobState, JobStore, new_job_id
 
-__all__ = ["FINISHED", "STATES", "Job", "JobState", "JobStatus", "JobStore", "Runner", "check_room"]
+__all__ = ["FINISHED", "STATES", "Job", "JobState", "JobStatus", "JobStore", "Runner", "check_room",
+           "new_job_id"]

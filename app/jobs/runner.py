@@ -18,9 +18,10 @@ class Runner(Protocol):
     @property
     def store(self) -> JobStore: ...
 
-    async def submit(self, task: Task, callback_url: str | None = None) -> Job:
+    async def submit(self, task: Task, callback_url: str | None = None, owner: str | None = None) -> Job:
         """Create a job for ``task``; raises a problem (``busy``, ``not-ready``) when it cannot.
-        ``callback_url`` (checked against the allowed hosts) receives the final status."""
+        ``callback_url`` (checked against the allowed hosts) receives the final status; only
+        ``owner`` (see :attr:`app.jobs.Job.owner`) may see the job."""
 
     async def cancel(self, job_id: str) -> Job | None: ...
 

@@ -7,6 +7,7 @@ and are not shared between server processes) and :class:`app.redis_jobs.store.Re
 
 from __future__ import annotations
 
+import secrets
 import time
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
@@ -36,11 +37,19 @@ class Job:
     request_id: str | None = None
     #: where the final status is POSTed (see :mod:`app.callbacks`)
     callback_url: str | None = None
+    #: who may see the job: :func:`app.deps.caller_id` of the API key that created it (None
+    #: without API keys); any other caller is answered 404, as for a job that does not exist
+    owner: str | None = None
     result: Rendered | None = field(default=None, repr=False)
 
     @property
     def done(self) -> bool:
         return self.state in FINISHED
+
+
+def new_job_id() -> str:
+    """A job id: 128 random bits in hex (a UUID4 has 122)."""
+    return secrets.token_hex(16)
 
 
 class JobStore(Protocol):

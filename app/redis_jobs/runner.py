@@ -13,11 +13,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import uuid
 from typing import Any
 
 from app.config import Settings
-from app.jobs import Job, check_room
+from app.jobs import Job, check_room, new_job_id
 from app.problems import NOT_READY, ProblemError
 from app.redis_jobs.blobs import BlobStore, LocalBlobStore
 from app.redis_jobs.celery_app import CALLBACK_TASK, TASK_NAME, make_celery
@@ -42,10 +41,11 @@ class CeleryJobRunner:
         return cls(store, make_celery(settings), blobs, queue=settings.jobs_queue,
                    max_jobs=settings.max_stored_jobs)
 
-    async def submit(self, task: Task, callback_url: str | None = None) -> Job:
+    async def submit(self, task: Task, callback_url: str | None = None, owner: str | None = None) -> Job:
         """Queue a job for ``task``; ``busy`` when the store is full, ``not-ready`` without Redis."""
         await check_room(self.store, self.max_jobs, retry_after=5)
-        job = Job(id=uuid.uuid4().hex, kind=task.kind, request_id=task.request_id, callback_url=callback_url)
+        job = Job(id=new_job_id(), kind=task.kind, request_id=task.request_id, callback_url=callback_url,
+                  owner=owner)
         await asyncio.to_thread(self.blobs.put, input_key(job.id), encode_input(task))
         try:
             await self.store.add(job)

@@ -145,7 +145,8 @@ def job_from_hash(job_id: str, fields: Mapping[str, str]) -> Job:
                started=_float(fields.get("started")), finished=_float(fields.get("finished")),
                expires=_float(fields.get("expires")),
                error=json.loads(fields["error"]) if fields.get("error") else None,
-               request_id=fields.get("request_id") or None, callback_url=fields.get("callback_url") or None)
+               request_id=fields.get("request_id") or None, callback_url=fields.get("callback_url") or None,
+               owner=fields.get("owner") or None)
 
 
 def client_options() -> dict[str, Any]:
@@ -193,7 +194,7 @@ class RedisJobStore:
     async def add(self, job: Job) -> None:
         fields = {"kind": job.kind, "state": job.state, "progress": job.progress, "created": job.created,
                   "ttl": self.ttl, "attempts": 0, "completions": 0, "request_id": job.request_id or "",
-                  "callback_url": job.callback_url or ""}
+                  "callback_url": job.callback_url or "", "owner": job.owner or ""}
         async with self._redis():
             await (self.client.pipeline(transaction=True)
                    .hset(self.keys.job(job.id), mapping=fields)

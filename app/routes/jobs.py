@@ -12,7 +12,7 @@ from typing import Any
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
 
-from app.deps import RunnerDep, StoreDep
+from app.deps import Caller, RunnerDep, StoreDep
 from app.forms import CallbackUrl, CopyForm, DetectForm, EmbedForm, StrictFormRoute
 from app.jobs import Job, JobStatus, JobStore
 from app.logs import log_task
@@ -39,9 +39,10 @@ def _accepted(job: Job, request: Request) -> JSONResponse:
                         headers={"Location": location})
 
 
-async def _job(store: JobStore, job_id: str) -> Job:
+async def _job(store: JobStore, job_id: str, caller: str | None) -> Job:
+    """The job, when ``caller`` created it: another caller's job is answered like an unknown one."""
     job = await store.get(job_id)
-    if job is None:
+    if job is None or job.owner != caller:
         raise ProblemError(NOT_FOUND, "no such job (unknown, deleted or expired)")
     return job
 
@@ -56,22 +57,22 @@ _KNOWN: dict[int | str, dict[str, Any]] = problem_responses(NOT_FOUND, UNAUTHORI
 @router.post("/v1/jobs/embed", summary="Start an embedding job", status_code=202, response_model=JobStatus,
              responses={**_CREATE, **problem_responses(*MESH_PROBLEMS, TOO_LITTLE_CAPACITY, NOT_READY,
                                                        CALLBACK_NOT_ALLOWED)})
-async def create_embed_job(task: EmbedForm, callback_url: CallbackUrl, runner: RunnerDep,
+async def create_embed_job(task: EmbedForm, callback_url: CallbackUrl, runner: RunnerDep, caller: Caller,
                            request: Request) -> JSONResponse:
     """Validate the form now, run the embedding in the background; the result has the same body
     and headers as `POST /v1/embed`.  With `callback_url`, the final status is also POSTed there."""
-    job = await runner.submit(task, callback_url)
+    job = await runner.submit(task, callback_url, caller)
     log_task(request, task, job=job.id)
     return _accepted(job, request)
 
 
 @router.post("/v1/jobs/detect", summary="Start a detection job", status_code=202, response_model=JobStatus,
              responses={**_CREATE, **problem_responses(*MESH_PROBLEMS, NOT_READY, CALLBACK_NOT_ALLOWED)})
-async def create_detect_job(task: DetectForm, callback_url: CallbackUrl, runner: RunnerDep,
+async def create_detect_job(task: DetectForm, callback_url: CallbackUrl, runner: RunnerDep, caller: Caller,
                             request: Request) -> JSONResponse:
     """Run a detection in the background; the result is the JSON of `POST /v1/detect`.  With
     `callback_url`, the final status is also POSTed there."""
-    job = await runner.submit(task, callback_url)
+    job = await runner.submit(task, callback_url, caller)
     log_task(request, task, job=job.id)
     return _accepted(job, request)
 
@@ -79,18 +80,18 @@ async def create_detect_job(task: DetectForm, callback_url: CallbackUrl, runner:
 @router.post("/v1/jobs/copies", summary="Start a copy job", status_code=202, response_model=JobStatus,
              responses={**_CREATE, **problem_responses(*MESH_PROBLEMS, TOO_LITTLE_CAPACITY, COPY_CONFLICT,
                                                        NOT_READY, CALLBACK_NOT_ALLOWED)})
-async def create_copy_job(task: CopyForm, callback_url: CallbackUrl, runner: RunnerDep,
+async def create_copy_job(task: CopyForm, callback_url: CallbackUrl, runner: RunnerDep, caller: Caller,
                           request: Request) -> JSONResponse:
     """`POST /v1/copies` in the background, for large files: the result has the same body and
     headers; the copy is in the registry once the job has succeeded."""
-    job = await runner.submit(task, callback_url)
+    job = await runner.submit(task, callback_url, caller)
     log_task(request, task, job=job.id)
     return _accepted(job, request)
 
 
 @router.get("/v1/jobs/{job_id}", summary="Job status", response_model=JobStatus, responses=_KNOWN)
-async def get_job(job_id: str, store: StoreDep) -> JobStatus:
-    return JobStatus.of(await _job(store, job_id))
+async def get_job(job_id: str, store: StoreDep, caller: Caller) -> JobStatus:
+    return JobStatus.of(await _job(store, job_id, caller))
 
 
 @router.get(
@@ -101,10 +102,10 @@ async def get_job(job_id: str, store: StoreDep) -> JobStatus:
         {"application/json": {"schema": {"$ref": "#/components/schemas/DetectResult"}}}),
         **problem_responses(NOT_FOUND, JOB_NOT_READY, JOB_FAILED, UNAUTHORIZED, NOT_READY)},
 )
-async def get_job_result(job_id: str, store: StoreDep) -> Response:
+async def get_job_result(job_id: str, store: StoreDep, caller: Caller) -> Response:
     """409 `job-not-ready` (with `Retry-After`) until the job finishes; 409 `job-failed` (with the
     job's problem as `error`) when it failed or was cancelled."""
-    job = await _job(store, job_id)
+    job = await _job(store, job_id, caller)
     if job.state in ("queued", "running"):
         raise ProblemError(JOB_NOT_READY, f"the job is {job.state}", headers={"Retry-After": "1"},
                            state=job.state, progress=job.progress)
@@ -123,8 +124,8 @@ async def get_job_result(job_id: str, store: StoreDep) -> Response:
                                     "expires)."},
                204: {"description": "The job had finished: it and its result are deleted."}, **_KNOWN},
 )
-async def delete_job(job_id: str, runner: RunnerDep, store: StoreDep) -> Any:
-    job = await _job(store, job_id)
+async def delete_job(job_id: str, runner: RunnerDep, store: StoreDep, caller: Caller) -> Any:
+    job = await _job(store, job_id, caller)
     if job.done:
         await store.delete(job_id)
         return Response(status_code=204)

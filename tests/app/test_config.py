@@ -29,11 +29,12 @@ def test_environment(monkeypatch):
     monkeypatch.setenv("MESHMARK_QUEUE_SIZE", "5")
     monkeypatch.setenv("MESHMARK_MAX_UPLOAD_BYTES", "1000")
     monkeypatch.setenv("MESHMARK_MAX_VERTICES", "77")
-    monkeypatch.setenv("MESHMARK_API_KEYS", "a, b,,c")
+    monkeypatch.setenv("MESHMARK_API_KEYS", "alpha-0123456789ab, bravo-0123456789ab,,charlie-0123456789")
     s = Settings()
     assert s.workers == 3 and s.admission_slots == 5
-    assert [k.get_secret_value() for k in s.api_keys] == ["a", "b", "c"]
-    assert "a" not in repr(s.api_keys)  # secrets stay masked in reprs and logs
+    assert [k.get_secret_value() for k in s.api_keys] == ["alpha-0123456789ab", "bravo-0123456789ab",
+                                                          "charlie-0123456789"]
+    assert "alpha" not in repr(s.api_keys)  # secrets stay masked in reprs and logs
     assert s.limits() == Limits(max_bytes=1000, max_vertices=77, max_faces=4_000_000, max_meshes=256,
                                 max_json_bytes=16 * 1024 * 1024)
     assert s.max_body_bytes == 1000 + 64 * 1024
@@ -43,3 +44,22 @@ def test_invalid_values_are_refused(monkeypatch):
     monkeypatch.setenv("MESHMARK_WORKERS", "0")
     with pytest.raises(ValidationError):
         Settings()
+
+
+@pytest.mark.parametrize(("value", "message"), [
+    (" , ", "names no key"),  # used to turn authentication off without a word
+    (",", "names no key"),
+    ("a", "shorter than 16 characters"),  # one-character keys were accepted
+    ("long-enough-key-0123, short", "1 of the MESHMARK_API_KEYS is shorter than 16"),
+])
+def test_api_keys_that_would_weaken_authentication_are_refused(monkeypatch, value, message):
+    monkeypatch.setenv("MESHMARK_API_KEYS", value)
+    with pytest.raises(ValidationError, match=message) as info:
+        Settings()
+    # the messages (what `meshmark serve` prints) do not echo the keys
+    assert "short" not in " ".join(e["msg"] for e in info.value.errors()).replace("shorter", "")
+
+
+def test_empty_api_keys_mean_no_authentication(monkeypatch):
+    monkeypatch.setenv("MESHMARK_API_KEYS", "")
+    assert Settings().api_keys == []

@@ -79,9 +79,9 @@ def test_form_takes_two_files_and_no_more(client, sphere_obj):
 
 
 def test_limits_and_api_keys_apply(sphere_obj):
-    with make_client(max_vertices=100, api_keys="k1") as client:
+    with make_client(max_vertices=100, api_keys="k1-0123456789abcdef") as client:
         assert_problem(preview(client, "s.obj", sphere_obj), 401, "unauthorized")
-        answer = preview(client, "s.obj", sphere_obj, Authorization="Bearer k1")
+        answer = preview(client, "s.obj", sphere_obj, Authorization="Bearer k1-0123456789abcdef")
         body = assert_problem(answer, 413, "too-large")
         assert body["what"] == "vertices"
 

@@ -65,13 +65,14 @@ def test_the_page_names_no_other_host():
 
 
 def test_page_is_open_while_the_api_wants_a_key():
-    with make_client(api_keys="k1") as client:
+    with make_client(api_keys="k1-0123456789abcdef") as client:
         assert client.get("/").status_code == 200
         for url in asset_urls(client.get("/").text):
             assert client.get(url).status_code == 200
         # how the page finds out that it must ask for an API key
         assert_problem(client.get("/v1/jobs/auth-check"), 401, "unauthorized")
-        assert_problem(client.get("/v1/jobs/auth-check", headers={"X-API-Key": "k1"}), 404, "not-found")
+        assert_problem(client.get("/v1/jobs/auth-check", headers={"X-API-Key": "k1-0123456789abcdef"}), 404,
+                       "not-found")
 
 
 def test_page_is_not_in_the_api_document(client):

@@ -309,7 +309,7 @@ def test_webgl1_draws_the_same_model(playwright: Any, server: Server) -> None:
 
 def test_with_api_keys_the_page_asks_for_one(playwright: Any, browser: Any,
                                              tmp_path_factory: pytest.TempPathFactory) -> None:
-    with serve(tmp_path_factory.mktemp("web-keys") / "server.log", api_keys="page-key-1") as keyed:
+    with serve(tmp_path_factory.mktemp("web-keys") / "server.log", api_keys="page-key-1-0123456789") as keyed:
         web = Page(browser, keyed.base)
         page = web.page
         page.wait_for_selector("#apikey-section", state="visible")
@@ -322,7 +322,7 @@ def test_with_api_keys_the_page_asks_for_one(playwright: Any, browser: Any,
         assert page.inner_text("#error-title") == "Missing or invalid API key"
         assert page.evaluate("() => document.activeElement.id") == "apikey"
 
-        page.fill("#apikey", "page-key-1")
+        page.fill("#apikey", "page-key-1-0123456789")
         page.click("#embed-form button")
         page.wait_for_selector("#download")
         web.wait_preview(heat=True)
