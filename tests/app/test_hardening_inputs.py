@@ -24,7 +24,7 @@ from fastapi.testclient import TestClient
 
 from app.problems import CORE_ERRORS
 from tests.app import hostile as H
-from tests.app.conftest import assert_problem, make_client
+from tests.app.conftest import assert_problem, make_client, wait_job
 from tests.core.formats import helpers as F
 from tests.core.formats.test_text_formats import MALFORMED
 
@@ -330,3 +330,18 @@ def test_meshes_that_parse_but_cannot_carry_a_mark(client, name, data, slug, rea
     assert reason in body["detail"], body["detail"]
     if slug == "too-little-capacity":
         assert body["carriers"] == 0 and body["needed"] == 56
+
+
+_OVERFLOW_OBJ = b"v 0 0 0\nv 1e200 0 0\nv 0 1e200 0\nv 0 0 1e200\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"
+
+
+@pytest.mark.parametrize("path", ["/v1/embed", "/v1/detect", "/v1/capacity", "/v1/preview", "/v1/jobs/embed"])
+def test_coordinates_that_overflow_are_malformed_not_a_500(client, path):
+    # a 76-byte OBJ whose bounding-box diagonal overflows float64 was a 500 on every route
+    response = client.post(path, files={"mesh": ("a.obj", _OVERFLOW_OBJ)}, data={"key": "some key"})
+    if path.startswith("/v1/jobs"):
+        assert response.status_code == 202
+        status = wait_job(client, response.json()["id"])
+        assert status["state"] == "failed" and status["error"]["status"] == 422, status
+        return
+    assert_problem(response, 422, "malformed-mesh")
