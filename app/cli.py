@@ -325,6 +325,7 @@ def _serve(args: argparse.Namespace) -> int:
     # from app.middleware (with the route, the problem type and the request id), not uvicorn;
     # log_config=None keeps uvicorn's own lines in the one stream configure_logging set up.
     config = uvicorn.Config(create_app(settings), log_level=settings.log_level, access_log=False,
+                            limit_concurrency=settings.max_connections,
                             log_config=None, http="httptools", loop="uvloop")
     uvicorn.Server(config).run(sockets=[sock])
     return EXIT_OK

@@ -45,10 +45,17 @@ class Settings(BaseSettings):
     max_faces: int = Field(default=4_000_000, ge=1)
     max_meshes: int = Field(default=256, ge=1)
     max_json_bytes: int = Field(default=16 * MIB, ge=1)  # glTF JSON chunk
+    # the API process's own memory: bodies being received (all requests), a body that stops
+    # arriving, resident memory before new work is refused, connections uvicorn keeps at once
+    upload_budget_bytes: int = Field(default=512 * MIB, ge=1)
+    body_timeout_seconds: float = Field(default=30.0, gt=0)
+    api_memory_mb: int = Field(default=2048, ge=0)  # 0 = no cap
+    max_connections: int = Field(default=1024, ge=1)
 
     # jobs
     job_result_ttl_seconds: float = Field(default=3600.0, gt=0)  # finished jobs are kept this long
     max_stored_jobs: int = Field(default=256, ge=1)  # jobs in the store, finished or not
+    max_result_bytes: int = Field(default=2048 * MIB, ge=1)  # memory backend: results on disk, all jobs
 
     # where jobs run: "memory" (this process's pool) or "redis" (Celery workers: `meshmark worker`)
     jobs_backend: Literal["memory", "redis"] = "memory"
@@ -83,6 +90,14 @@ class Settings(BaseSettings):
         if isinstance(value, str):
             return [h.strip().lower() for h in value.split(",") if h.strip()]
         return value
+
+    @model_validator(mode="after")
+    def _budget_holds_one_upload(self) -> Settings:
+        if self.upload_budget_bytes < self.max_body_bytes:
+            raise ValueError(f"MESHMARK_UPLOAD_BUDGET_BYTES ({self.upload_budget_bytes:,}) must be at "
+                             f"least one request body (MESHMARK_MAX_UPLOAD_BYTES + 64 KiB = "
+                             f"{self.max_body_bytes:,})")
+        return self
 
     @model_validator(mode="after")
     def _callbacks_need_a_secret(self) -> Settings:

@@ -100,7 +100,7 @@ class StrictFormRoute(APIRoute):
         fields = _form_fields(self.dependant)
 
         async def strict_handler(request: Request) -> Response:
-            refusal = self.authenticate(request) or self.admit(request)
+            refusal = self.authenticate(request) or _short_of_memory(request) or self.admit(request)
             if refusal is not None:
                 # the upload is read and dropped, not parsed: closing a socket with unread data
                 # makes the kernel reset the connection, and a client still sending could lose the
@@ -130,6 +130,11 @@ class StrictFormRoute(APIRoute):
         except ProblemError as refusal:
             return refusal
         return None
+
+
+def _short_of_memory(request: Request) -> ProblemError | None:
+    guard = getattr(request.app.state, "memory_guard", None)
+    return guard.refusal() if guard is not None else None
 
 
 def _form_fields(dependant: Any) -> frozenset[str]:

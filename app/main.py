@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import secrets
+import tempfile
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
@@ -12,12 +13,14 @@ from typing import Any
 from fastapi import Depends, FastAPI
 from fastapi_offline import FastAPIOffline
 
+from app.blobs import LocalBlobStore
 from app.config import Settings
 from app.deps import require_caller
 from app.jobs import Runner
 from app.memory_jobs import InMemoryJobStore, LocalJobRunner
 from app.metrics import Metrics
 from app.middleware import BodyLimitMiddleware, MetricsMiddleware
+from app.overload import MemoryGuard, UploadBudget
 from app.problems import BAD_FORM, Problem, install_problem_handlers, problem_responses
 from app.routes import V1_ROUTERS, health
 from app.tracing import close_registry, configure_registry
@@ -48,7 +51,10 @@ def make_runner(settings: Settings, pool: WorkerPool) -> Runner:
         from app.redis_jobs.runner import CeleryJobRunner
 
         return CeleryJobRunner.from_settings(settings)
-    return LocalJobRunner(InMemoryJobStore(), pool, ttl=settings.job_result_ttl_seconds,
+    # a private directory of this process under blob_dir (checked: ours, mode 0700)
+    result_dir = tempfile.mkdtemp(prefix="results-", dir=LocalBlobStore(settings.blob_dir).root)
+    store = InMemoryJobStore(result_dir, max_result_bytes=settings.max_result_bytes)
+    return LocalJobRunner(store, pool, ttl=settings.job_result_ttl_seconds,
                           max_jobs=settings.max_stored_jobs, callback_secret=callback_secret(settings))
 
 
@@ -123,7 +129,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(health.router)
     app.include_router(web_router)  # the page at /, open like /docs: its API calls carry the key
 
-    app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
+    app.state.upload_budget = UploadBudget(settings.upload_budget_bytes)
+    app.state.memory_guard = MemoryGuard(settings.api_memory_mb * 1024 * 1024)
+    app.state.metrics.watch(app.state.upload_budget, app.state.memory_guard)
+    app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes, budget=app.state.upload_budget,
+                       idle_timeout=settings.body_timeout_seconds)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)  # outermost: sees the 413s too
 
     def openapi() -> dict[str, Any]:

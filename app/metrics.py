@@ -24,6 +24,7 @@ from prometheus_client import (
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
+from app.overload import MemoryGuard, UploadBudget
 from app.workers.pool import WorkerPool
 from meshmark import __version__
 
@@ -38,6 +39,9 @@ class _ServiceCollector(Collector):
     def __init__(self) -> None:
         self.pool: WorkerPool | None = None
         self.jobs: Mapping[str, int] = {}
+        self.budget: UploadBudget | None = None
+        self.guard: MemoryGuard | None = None
+        self.result_bytes: int | None = None
 
     def collect(self) -> Iterator[Metric]:
         pool = self.pool
@@ -60,6 +64,21 @@ class _ServiceCollector(Collector):
             for (kind, outcome), n in sorted(pool.outcomes.items()):
                 tasks.add_metric([kind, outcome], n)
             yield tasks
+        figures = []
+        if self.budget is not None:
+            figures += [("meshmark_upload_bytes_in_flight", "Bytes of request bodies held by requests in "
+                         "progress.", self.budget.in_flight),
+                        ("meshmark_upload_budget_bytes", "Most bytes of bodies held at once before 429.",
+                         self.budget.limit)]
+        if self.guard is not None:
+            figures.append(("meshmark_api_memory_limit_bytes", "Resident memory of the API process above "
+                            "which new work is refused (0: no cap); compare process_resident_memory_bytes.",
+                            self.guard.limit))
+        if self.result_bytes is not None:
+            figures.append(("meshmark_job_result_bytes", "Bytes of stored job results (memory backend: on "
+                            "disk).", self.result_bytes))
+        for name, help_, value in figures:
+            yield GaugeMetricFamily(name, help_, value=value)
         jobs = GaugeMetricFamily("meshmark_jobs", "Stored jobs by state.", labels=["state"])
         for state, n in sorted(self.jobs.items()):
             jobs.add_metric([state], n)
@@ -88,7 +107,12 @@ class Metrics:
         self.requests.labels(method, route, str(status)).inc()
         self.duration.labels(route).observe(seconds)
 
-    def render(self, pool: WorkerPool | None, jobs: Mapping[str, int]) -> bytes:
+    def watch(self, budget: UploadBudget, guard: MemoryGuard) -> None:
+        """Report the upload budget and the memory cap of the app."""
+        self._service.budget, self._service.guard = budget, guard
+
+    def render(self, pool: WorkerPool | None, jobs: Mapping[str, int],
+               result_bytes: int | None = None) -> bytes:
         """The exposition text, with the pool and job figures of this moment."""
-        self._service.pool, self._service.jobs = pool, jobs
+        self._service.pool, self._service.jobs, self._service.result_bytes = pool, jobs, result_bytes
         return generate_latest(self.registry)

@@ -3,6 +3,7 @@ request."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import time
@@ -11,23 +12,33 @@ from starlette.datastructures import Headers, MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.metrics import Metrics
-from app.problems import PROBLEM_BASE, PROBLEM_MEDIA_TYPE, TOO_LARGE, ProblemError
+from app.overload import UploadBudget
+from app.problems import BODY_TIMEOUT, BUSY, PROBLEM_BASE, PROBLEM_MEDIA_TYPE, TOO_LARGE, ProblemError
 from app.request_id import REQUEST_ID_HEADER, request_id_from, set_request_id
 
 log = logging.getLogger("meshmark.access")
 
 
-class BodyTooLarge(ProblemError):
-    def __init__(self, limit: int) -> None:
-        super().__init__(TOO_LARGE, f"the request body exceeds {limit:,} bytes", max_body_bytes=limit)
+class BodyRefused(ProblemError):
+    """The body cannot be taken (too large, over the upload budget, too slow): answered at once."""
+
+
+def _too_large(limit: int) -> BodyRefused:
+    return BodyRefused(TOO_LARGE, f"the request body exceeds {limit:,} bytes", max_body_bytes=limit)
 
 
 class BodyLimitMiddleware:
     """Refuses a body above ``max_bytes``: at once when Content-Length says so, otherwise as soon
-    as the bytes received pass the limit, before the multipart parser has seen them all."""
+    as the bytes received pass the limit, before the multipart parser has seen them all.
 
-    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
-        self.app, self.max_bytes = app, max_bytes
+    With a ``budget``, every chunk received counts against the bytes all requests in progress may
+    hold (given back when the request ends; beyond it: ``busy``), and with ``idle_timeout`` a body
+    that stops arriving for that many seconds ends its request (408 ``body-timeout``): a stalled
+    client held up to 16 MiB of the API's memory with no time limit (120 of them: 1.9 GB)."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int, budget: UploadBudget | None = None,
+                 idle_timeout: float | None = None) -> None:
+        self.app, self.max_bytes, self.budget, self.idle_timeout = app, max_bytes, budget, idle_timeout
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -35,19 +46,32 @@ class BodyLimitMiddleware:
             return
         declared = Headers(scope=scope).get("content-length")
         if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
-            await self._reject(scope, send)
+            await self._reject(scope, send, _too_large(self.max_bytes))
             return
 
         received = 0
         started = False
+        body_done = scope["method"] in ("GET", "HEAD", "DELETE", "OPTIONS") and declared in (None, "0")
 
         async def limited_receive() -> Message:
-            nonlocal received
-            message = await receive()
+            nonlocal received, body_done
+            if body_done or self.idle_timeout is None:
+                message = await receive()
+            else:
+                try:
+                    message = await asyncio.wait_for(receive(), self.idle_timeout)
+                except TimeoutError:
+                    raise BodyRefused(BODY_TIMEOUT, f"no byte of the request body for {self.idle_timeout:g} "
+                                      "s", headers={"Connection": "close"}) from None
             if message["type"] == "http.request":
-                received += len(message.get("body", b""))
+                chunk = len(message.get("body", b""))
+                received += chunk
+                body_done = not message.get("more_body", False)
                 if received > self.max_bytes:
-                    raise BodyTooLarge(self.max_bytes)
+                    raise _too_large(self.max_bytes)
+                if self.budget is not None and not self.budget.take(chunk):
+                    received -= chunk
+                    raise self.budget.refusal()
             return message
 
         async def tracking_send(message: Message) -> None:
@@ -57,16 +81,26 @@ class BodyLimitMiddleware:
 
         try:
             await self.app(scope, limited_receive, tracking_send)
-        except BodyTooLarge:
+        except BodyRefused as refusal:
             if started:
                 raise
-            await self._reject(scope, send)
+            await self._reject(scope, send, refusal)
+        except ProblemError as refusal:  # the upload budget's busy
+            if started or refusal.problem is not BUSY:
+                raise
+            await self._reject(scope, send, refusal)
+        finally:
+            if self.budget is not None:
+                self.budget.give_back(received)
 
-    async def _reject(self, scope: Scope, send: Send) -> None:
-        body = json.dumps(BodyTooLarge(self.max_bytes).to_dict(scope.get("path"))).encode()
-        await send({"type": "http.response.start", "status": 413, "headers": [
+    @staticmethod
+    async def _reject(scope: Scope, send: Send, refusal: ProblemError) -> None:
+        body = json.dumps(refusal.to_dict(scope.get("path"))).encode()
+        headers = [(k.lower().encode("latin-1"), v.encode("latin-1"))
+                   for k, v in (refusal.headers or {}).items() if k.lower() != "connection"]
+        await send({"type": "http.response.start", "status": refusal.status_code, "headers": [
             (b"content-type", PROBLEM_MEDIA_TYPE.encode()), (b"content-length", str(len(body)).encode()),
-            (b"connection", b"close")]})
+            (b"connection", b"close"), *headers]})
         await send({"type": "http.response.body", "body": body})
 
 

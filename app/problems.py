@@ -55,6 +55,7 @@ JOB_NOT_READY = ProblemType("job-not-ready", 409, "The job has not finished")
 JOB_FAILED = ProblemType("job-failed", 409, "The job has no result")
 UNAUTHORIZED = ProblemType("unauthorized", 401, "Missing or invalid API key")
 NOT_READY = ProblemType("not-ready", 503, "The service is not ready")
+BODY_TIMEOUT = ProblemType("body-timeout", 408, "The request body stopped arriving")
 INTERNAL = ProblemType("internal-error", 500, "Internal server error")
 COPY_CONFLICT = ProblemType("copy-conflict", 409, "The recipient's copy was issued otherwise")
 NO_COPIES = ProblemType("no-copies", 404, "No copies registered")
@@ -63,6 +64,7 @@ PROBLEM_TYPES = (
     BAD_FORM, UNSUPPORTED_FORMAT, NOT_MULTIPART, MALFORMED_MESH, INVALID_INPUT, TOO_LARGE,
     TOO_LITTLE_CAPACITY, DEGENERATE_MESH, BUSY, TIMED_OUT, WORKER_FAILED, NOT_FOUND, JOB_NOT_READY,
     JOB_FAILED, UNAUTHORIZED, NOT_READY, INTERNAL, CALLBACK_NOT_ALLOWED, COPY_CONFLICT, NO_COPIES,
+    BODY_TIMEOUT,
 )
 
 #: engine exception -> problem type; looked up along the exception's MRO

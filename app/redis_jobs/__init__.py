@@ -5,7 +5,7 @@ Nothing in the service imports this package but the app factory (:func:`app.main
 when ``MESHMARK_JOBS_BACKEND=redis``) and the ``meshmark worker`` command, so a single machine
 needs neither Celery nor Redis installed.
 
-``blobs``: the blob store interface and a local directory; ``store``: the job records (the API's
+``store``: the job records (the API's
 :class:`~app.jobs.JobStore` and the workers' side); ``runner``: the API's
 :class:`~app.jobs.Runner`; ``worker``: one job as a worker runs it; ``celery_app``: the Celery
 application and the worker process; ``celery_main``: the app for Celery's own tools.

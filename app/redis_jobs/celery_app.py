@@ -34,9 +34,9 @@ from celery.exceptions import Reject, TimeLimitExceeded
 from celery.signals import after_setup_logger, after_setup_task_logger, worker_process_init
 
 from app import callbacks
+from app.blobs import LocalBlobStore
 from app.config import Settings
 from app.logs import decorate
-from app.redis_jobs.blobs import LocalBlobStore
 from app.redis_jobs.store import JobRecords, input_key, job_from_hash
 from app.redis_jobs.worker import execute_job
 from app.workers import failures

@@ -15,10 +15,10 @@ import contextlib
 import logging
 from typing import Any
 
+from app.blobs import BlobStore, LocalBlobStore
 from app.config import Settings
 from app.jobs import Job, check_room, new_job_id
 from app.problems import NOT_READY, ProblemError
-from app.redis_jobs.blobs import BlobStore, LocalBlobStore
 from app.redis_jobs.celery_app import CALLBACK_TASK, TASK_NAME, make_celery
 from app.redis_jobs.store import RedisJobStore, input_key, unreachable
 from app.redis_jobs.worker import encode_input

@@ -1,7 +1,7 @@
 """Jobs in Redis: the metadata of the distributed backend, shared by the API and the workers.
 
 Redis holds what the status route shows (state, progress, timestamps, the problem of a failed job)
-and a few counters; the bytes (upload and result) are in a :class:`~app.redis_jobs.blobs.BlobStore`.
+and a few counters; the bytes (upload and result) are in a :class:`~app.blobs.BlobStore`.
 Every key starts with a *namespace*, the Celery queue's name, so that two deployments can share one
 Redis database:
 
@@ -37,9 +37,9 @@ import redis.asyncio as aioredis
 from redis.backoff import ExponentialBackoff
 from redis.retry import Retry
 
+from app.blobs import BlobStore
 from app.jobs import STATES, Job
 from app.problems import NOT_READY, ProblemError
-from app.redis_jobs.blobs import BlobStore
 from app.results import Rendered
 from app.workers.failures import poisoned
 

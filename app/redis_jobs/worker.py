@@ -24,8 +24,8 @@ from typing import Any
 
 import redis
 
+from app.blobs import BlobNotFound, BlobStore
 from app.problems import INTERNAL, ProblemError
-from app.redis_jobs.blobs import BlobNotFound, BlobStore
 from app.redis_jobs.store import JobRecords, input_key, result_key
 from app.request_id import set_request_id
 from app.results import Rendered

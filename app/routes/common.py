@@ -8,6 +8,7 @@ from fastapi import Response
 
 from app.problems import (
     BAD_FORM,
+    BODY_TIMEOUT,
     BUSY,
     DEGENERATE_MESH,
     MALFORMED_MESH,
@@ -22,7 +23,7 @@ from app.results import EMBED_HEADERS, MESH_MEDIA_TYPES, Rendered
 
 #: problems of every route that runs the engine on an uploaded mesh
 MESH_PROBLEMS = (BAD_FORM, UNSUPPORTED_FORMAT, NOT_MULTIPART, MALFORMED_MESH, DEGENERATE_MESH, TOO_LARGE,
-                 BUSY, TIMED_OUT, WORKER_FAILED, UNAUTHORIZED)
+                 BUSY, TIMED_OUT, WORKER_FAILED, UNAUTHORIZED, BODY_TIMEOUT)
 
 
 def as_response(result: Rendered) -> Response:

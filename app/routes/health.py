@@ -41,4 +41,6 @@ async def metrics(request: Request) -> Response:
         jobs = await runner.store.count() if runner is not None else {}
     except ProblemError:  # the job store is unreachable: the other figures still count
         jobs = {}
-    return Response(state.metrics.render(getattr(state, "pool", None), jobs), media_type=CONTENT_TYPE_LATEST)
+    result_bytes = getattr(runner.store, "result_bytes", None) if runner is not None else None
+    return Response(state.metrics.render(getattr(state, "pool", None), jobs, result_bytes),
+                    media_type=CONTENT_TYPE_LATEST)

@@ -63,3 +63,9 @@ def test_api_keys_that_would_weaken_authentication_are_refused(monkeypatch, valu
 def test_empty_api_keys_mean_no_authentication(monkeypatch):
     monkeypatch.setenv("MESHMARK_API_KEYS", "")
     assert Settings().api_keys == []
+
+
+def test_the_upload_budget_holds_one_request_body():
+    with pytest.raises(ValidationError, match="at least one request body"):
+        Settings(max_upload_bytes=1_000_000, upload_budget_bytes=500_000)
+    assert Settings(max_upload_bytes=1_000_000, upload_budget_bytes=1_000_000 + 64 * 1024).upload_budget_bytes

@@ -33,10 +33,10 @@ import pytest
 import redis
 from pydantic import ValidationError
 
+from app.blobs import LocalBlobStore
 from app.cli import main
 from app.config import Settings
 from app.jobs import STATES, Job
-from app.redis_jobs.blobs import LocalBlobStore
 from app.redis_jobs.store import JobRecords, RedisJobStore, input_key, result_key
 from app.redis_jobs.worker import decode_input, encode_input
 from app.results import Rendered

@@ -1,6 +1,7 @@
-"""Where the bytes of distributed jobs live: uploads and results, keyed by job.
+"""Where the bytes of jobs live: uploads and results, keyed by job.
 
-The Redis backend keeps job *metadata* in Redis and the mesh bytes here, so that a 60 MB upload
+The memory backend keeps its results here (in a private directory of the API process).  The
+Redis backend keeps job *metadata* in Redis and the mesh bytes here, so that a 60 MB upload
 never sits in Redis memory or crosses the broker.  :class:`BlobStore` is the interface;
 :class:`LocalBlobStore` is a directory, shared by the API and every worker (the same machine, or a
 network volume mounted on all of them).

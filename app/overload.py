@@ -1,0 +1,63 @@
+"""The API process's own resources, bounded by settings rather than by callers: the bytes of
+uploads being received (all requests together) and the process's resident memory.
+
+Both are checked before work is taken on; beyond them a request gets ``busy`` (429 with
+``Retry-After``) instead of pushing the process into swap or the out-of-memory killer.
+"""
+
+from __future__ import annotations
+
+import os
+
+from app.problems import BUSY, ProblemError
+
+_PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
+
+
+def resident_bytes() -> int | None:
+    """Resident memory of this process (Linux ``/proc/self/statm``), None where unknown."""
+    try:
+        with open("/proc/self/statm", "rb") as f:
+            return int(f.read().split()[1]) * _PAGE
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+class UploadBudget:
+    """Bytes of request bodies received by requests still in progress, against ``limit``.
+
+    :class:`app.middleware.BodyLimitMiddleware` takes each chunk as it arrives and gives a
+    request's bytes back when it ends; a chunk beyond the budget ends its request with ``busy``.
+    """
+
+    def __init__(self, limit: int) -> None:
+        self.limit, self.in_flight = limit, 0
+
+    def take(self, n: int) -> bool:
+        if self.in_flight + n > self.limit:
+            return False
+        self.in_flight += n
+        return True
+
+    def give_back(self, n: int) -> None:
+        self.in_flight -= n
+
+    def refusal(self) -> ProblemError:
+        return ProblemError(BUSY, f"uploads being received use the server's {self.limit:,}-byte budget; "
+                            "retry later", headers={"Retry-After": "2"})
+
+
+class MemoryGuard:
+    """Refuses new work while the API process's resident memory is above ``limit`` bytes (0: never)."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+
+    def refusal(self) -> ProblemError | None:
+        if not self.limit:
+            return None
+        used = resident_bytes()
+        if used is None or used <= self.limit:
+            return None
+        return ProblemError(BUSY, f"the server is using its memory budget ({self.limit // (1 << 20):,} MiB); "
+                            "retry later", headers={"Retry-After": "5"})
