@@ -95,6 +95,10 @@ def parser() -> argparse.ArgumentParser:
 
     tracing_arguments(sub.add_parser("tracing", parents=[common],
                                      help="leak tracing: copies, averages, innocents, SQLite vs PostgreSQL"))
+    cost = sub.add_parser("cost", parents=[common],
+                          help="reading time per byte of every format's hostile shapes, 1 KB to the limit")
+    cost.add_argument("--shapes", nargs="+", metavar="SHAPE", help="only these shapes (default: all)")
+    cost.add_argument("--limit", type=int, default=0, help="largest size, bytes (default: max_upload_bytes)")
     # byte-identity of every engine answer against a committed baseline (refactorings); not in "all"
     ident = sub.add_parser("identical", parents=[common],
                            help="fingerprint every engine answer on the shared meshes, or compare with one")
@@ -125,6 +129,10 @@ def main(argv: list[str] | None = None) -> int:
         pipelines.run(args)
         print(f"[bench] pipelines -> {Path(args.out) / 'pipelines.md'}")
         return 0
+    if args.suite == "cost":
+        from bench import cost
+
+        return cost.run(args)
     if args.suite == "http":
         from bench import http_service
 

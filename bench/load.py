@@ -11,6 +11,10 @@
    valid p99 latency must stay within the job time limit; poison must get a 4xx problem.
 3. *Soak* at 1x for ``--soak-seconds``: the resident memory (RSS) of the server and its worker
    processes is sampled every second and must stay flat.
+4. *Stalled clients*: ``--stall-clients`` uploads that stop half-way; each must be answered (408
+   or 429), valid requests still served, and the API process's memory come back down.
+5. *Job flood*: ``--flood-jobs`` jobs whose answers are ``--flood-trailing-mb`` MB each; the results
+   must stay out of the API process (its memory flat), within the result budget.
 
 Figures go to ``bench/results/hardening.md`` (with date, machine, load average and command).
 """
@@ -35,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import trimesh
 
 from bench.common import DEFAULT_OUT, mesh_path
 from bench.hardening import record, run_info
@@ -292,6 +297,120 @@ async def sampled_phase(phase: Awaitable[list[Result]], pid: int | None
     return results, samples
 
 
+def process_rss_mb(pid: int) -> float:
+    """Resident memory of ``pid`` alone (the API process, not its workers), MiB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return 0.0
+
+
+async def _sampling(pid: int, work: Awaitable[Any]) -> tuple[Any, list[float]]:
+    """Await ``work`` while sampling the API process's RSS every 0.5 s."""
+    samples: list[float] = []
+
+    async def sample() -> None:
+        while True:
+            samples.append(process_rss_mb(pid))
+            await asyncio.sleep(0.5)
+
+    sampler = asyncio.create_task(sample())
+    try:
+        result = await work
+    finally:
+        sampler.cancel()
+    samples.append(process_rss_mb(pid))
+    return result, samples
+
+
+async def stalled_clients(port: int, pid: int, clients: int, each: int, valid: bytes, reference: bytes,
+                          timeout: float) -> dict[str, Any]:
+    """``clients`` uploads that declare 16 MiB, send ``each`` bytes of it and stop; meanwhile one
+    valid embedding after another.  Each stalled upload must end (408 or 429) and the API
+    process's memory must come back down; the valid requests must still be served."""
+    head = (f"POST /v1/embed HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: {FORM['content-type']}\r\n"
+            f"Content-Length: {16 << 20}\r\n\r\n--{BOUNDARY}\r\nContent-Disposition: form-data; "
+            f'name="mesh"; filename="m.obj"\r\n\r\n').encode()
+    chunk = b"v 0 0 0\n" * (each // 8)
+    start = time.perf_counter()
+
+    async def stall() -> tuple[int, float]:
+        try:
+            reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        except OSError:
+            return -1, 0.0
+        try:
+            writer.write(head + chunk)
+            await writer.drain()
+            answer = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), timeout)
+            return int(answer.split(b" ", 2)[1]), time.perf_counter() - start
+        except (OSError, TimeoutError, asyncio.IncompleteReadError, ValueError):
+            return 0, time.perf_counter() - start
+        finally:
+            writer.close()
+
+    async def valid_ones(until: float) -> list[Result]:
+        results = []
+        async with RawClient(f"http://127.0.0.1:{port}", timeout) as http:
+            while time.perf_counter() < until:
+                results.append(await one(http, "valid", valid, reference))
+                await asyncio.sleep(0.5)
+        return results
+
+    async def both() -> tuple[list[tuple[int, float]], list[Result]]:
+        stalls = asyncio.gather(*(stall() for _ in range(clients)))
+        served = asyncio.create_task(valid_ones(time.perf_counter() + 20))
+        return list(await stalls), await served
+
+    before = process_rss_mb(pid)
+    (ended, served), samples = await _sampling(pid, both())
+    await asyncio.sleep(2)
+    statuses: dict[str, int] = {}
+    for status, _ in ended:
+        statuses[str(status)] = statuses.get(str(status), 0) + 1
+    return {"clients": clients, "bytes_each": each, "answers": statuses,
+            "slowest_end_s": round(max(t for _, t in ended), 1),
+            "valid_meanwhile": len(served), "valid_meanwhile_ok": sum(r.correct for r in served),
+            "rss_before_mb": round(before, 1), "rss_peak_mb": round(max(samples), 1),
+            "rss_after_mb": round(process_rss_mb(pid), 1)}
+
+
+async def job_flood(base: str, pid: int, jobs: int, body: bytes, timeout: float) -> dict[str, Any]:
+    """``jobs`` embedding jobs of a small mesh with ``len(body)`` bytes of trailing data (the answer
+    keeps them): results must stay out of the API process, within the result budget."""
+    async def submit(http: httpx.AsyncClient) -> tuple[int, str | None]:
+        response = await http.post("/v1/jobs/embed", content=body, headers=FORM)
+        return response.status_code, response.json().get("id") if response.status_code == 202 else None
+
+    async def flood() -> tuple[list[tuple[int, str | None]], dict[str, int]]:
+        async with httpx.AsyncClient(base_url=base, timeout=timeout) as http:
+            created = [await submit(http) for _ in range(jobs)]
+            states: dict[str, int] = {}
+            for _, job in created:
+                if job is None:
+                    continue
+                while (state := (await http.get(f"/v1/jobs/{job}")).json()["state"]) in ("queued", "running"):
+                    await asyncio.sleep(0.5)
+                states[state] = states.get(state, 0) + 1
+            metrics = (await http.get("/metrics")).text
+            stored = next((float(line.split()[1]) for line in metrics.splitlines()
+                           if line.startswith("meshmark_job_result_bytes ")), 0.0)
+            for _, job in created:
+                if job is not None:
+                    await http.delete(f"/v1/jobs/{job}")
+            return created, {**states, "stored_result_mb": round(stored / (1 << 20))}
+
+    before = process_rss_mb(pid)
+    (created, states), samples = await _sampling(pid, flood())
+    codes: dict[str, int] = {}
+    for status, _ in created:
+        codes[str(status)] = codes.get(str(status), 0) + 1
+    return {"jobs": jobs, "upload_mb": round(len(body) / (1 << 20), 1), "submitted": codes,
+            "finished": states,
+            "rss_before_mb": round(before, 1), "rss_peak_mb": round(max(samples), 1),
+            "rss_after_mb": round(process_rss_mb(pid), 1)}
+
+
 def slope_mb_per_min(samples: list[tuple[float, float]]) -> float:
     xs, ys = [s[0] for s in samples], [s[1] for s in samples]
     mx, my = statistics.fmean(xs), statistics.fmean(ys)
@@ -307,6 +426,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--soak-seconds", type=float, default=120.0)
     p.add_argument("--job-timeout", type=float, default=120.0)
     p.add_argument("--seed", type=int, default=6)
+    p.add_argument("--stall-clients", type=int, default=120, help="stalled uploads at once")
+    p.add_argument("--stall-bytes", type=int, default=8 << 20, help="bytes each sends before stalling")
+    p.add_argument("--flood-jobs", type=int, default=40, help="jobs of the job flood")
+    p.add_argument("--flood-trailing-mb", type=int, default=30, help="trailing bytes of each flood upload")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = p.parse_args(argv)
 
@@ -366,6 +489,17 @@ def main(argv: list[str] | None = None) -> int:
             summaries.append(summarise(label, rate, results, args.job_timeout))
             print(json.dumps(summaries[-1]), flush=True)
         *phases, soak_summary = summaries
+
+        # 4. stalled clients, 5. a job flood: the API process's memory must come back down
+        time.sleep(2)
+        stalls = asyncio.run(stalled_clients(port, server.pid, args.stall_clients, args.stall_bytes,
+                                             valid_body, reference, args.job_timeout + 60))
+        print(json.dumps({"stalled clients": stalls}), flush=True)
+        # a binary PLY keeps whatever follows its last element, and so does the marked file
+        sphere = trimesh.creation.icosphere(subdivisions=4).export(file_type="ply")
+        flood_body = form_body("flood.ply", sphere + bytes(args.flood_trailing_mb << 20))
+        flood = asyncio.run(job_flood(base, server.pid, args.flood_jobs, flood_body, args.job_timeout + 60))
+        print(json.dumps({"job flood": flood}), flush=True)
     finally:
         server.send_signal(signal.SIGTERM)
         try:
@@ -403,6 +537,8 @@ def main(argv: list[str] | None = None) -> int:
         "soak": soak_summary,
         "soak_seconds": args.soak_seconds,
         "memory": memory,
+        "stalled_clients": stalls,
+        "job_flood": flood,
         "key_in_server_log": key_in_log,
     }
     rows = []
@@ -447,10 +583,29 @@ def main(argv: list[str] | None = None) -> int:
         f"third {memory['soak_first_third_mb']} MB, last third {memory['soak_last_third_mb']} MB, "
         f"fitted slope {memory['slope_mb_per_min']} MB/min over {memory['samples']} samples. The key "
         f"appeared in the server log: {'YES' if key_in_log else 'no'}.",
+        "",
+        f"**Stalled clients.** {stalls['clients']} connections at once, each declaring a 16 MiB upload, "
+        f"sending {stalls['bytes_each'] / (1 << 20):g} MiB of it and then nothing (the first round: 120 "
+        f"such held 1.9 GB of the API process, with no time limit). Their answers, by status: "
+        f"{stalls['answers']} (408 `body-timeout` after `body_timeout_seconds`, 429 `busy` beyond "
+        f"`upload_budget_bytes`; 0 would be no answer), the last after {stalls['slowest_end_s']} s. "
+        f"Meanwhile {stalls['valid_meanwhile_ok']} of {stalls['valid_meanwhile']} valid embeddings were "
+        f"answered correctly. API process RSS: {stalls['rss_before_mb']} MB before, peak "
+        f"{stalls['rss_peak_mb']} MB, {stalls['rss_after_mb']} MB after.",
+        "",
+        f"**Job flood.** {flood['jobs']} embedding jobs, one after another, of a 2,562-vertex binary PLY "
+        f"followed by {args.flood_trailing_mb} MB of trailing bytes (the marked file keeps them; the first "
+        f"round: 40 such took the API process from 543 MB to 2.9 GB). Submissions by status: "
+        f"{flood['submitted']}; finished: {flood['finished']} (stored result bytes before deleting, from "
+        f"/metrics). API process RSS: {flood['rss_before_mb']} MB before, peak {flood['rss_peak_mb']} MB, "
+        f"{flood['rss_after_mb']} MB after.",
     ]
     target = record("load", info, figures, "\n".join(lines), args.out)
     print(f"wrote {target}")
     bad = any(ph["valid_errors"] or ph["poison_not_4xx"] for ph in [*phases, soak_summary]) or key_in_log
+    bad |= "0" in stalls["answers"] or "-1" in stalls["answers"]  # a stalled client never answered
+    bad |= stalls["valid_meanwhile_ok"] < stalls["valid_meanwhile"]
+    bad |= flood["rss_peak_mb"] - flood["rss_before_mb"] > 300  # results kept in the process
     return 1 if bad else 0
 
 

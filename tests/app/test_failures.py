@@ -18,20 +18,21 @@ def _captured(exc: Exception) -> Exception:
 
 
 def test_engine_errors_keep_their_class_message_and_members() -> None:
-    failure = _captured(CapacityError("12 carriers for key s3cret-key", carriers=12, needed=56))
+    # the engine's messages hold no input (issue 15): they pass unchanged, nothing is cut out
+    failure = _captured(CapacityError("12 carriers, 56 needed", carriers=12, needed=56))
     assert isinstance(failure, failures.EngineFailure) and failure.exc_type is CapacityError
-    problem = failures.problem(failure, key="s3cret-key", memory_mb=0, timeout=1)
+    problem = failures.problem(failure, memory_mb=0, timeout=1)
     assert problem.to_dict() == {
         "type": "https://meshmark.dev/problems/too-little-capacity", "status": 422,
-        "title": "Too little capacity for the watermark", "detail": "12 carriers for key [key]",
+        "title": "Too little capacity for the watermark", "detail": "12 carriers, 56 needed",
         "carriers": 12, "needed": 56}
-    located = failures.problem(_captured(MeshFormatError("bad", "line 3")), key=None, memory_mb=0, timeout=1)
+    located = failures.problem(_captured(MeshFormatError("bad", "line 3")), memory_mb=0, timeout=1)
     assert located.problem.slug == "malformed-mesh" and located.extensions == {"location": "line 3"}
 
 
 def test_failures_of_the_process_have_fixed_public_messages() -> None:
     def detail(failure: BaseException) -> tuple[str, str]:
-        problem = failures.problem(failure, key="k", memory_mb=512, timeout=2.5)
+        problem = failures.problem(failure, memory_mb=512, timeout=2.5)
         return problem.problem.slug, problem.detail
 
     out_of_memory = ("worker-failed", "the worker ran out of memory (limit 512 MiB)")
