@@ -82,6 +82,8 @@ _SKIPPED_MODES = (0, 1, 2, 3)
 #: multiply the work a file asks for.
 MAX_REUSE = 8
 REUSE_ALLOWANCE = 1 << 16
+#: work units of one triangle primitive (its Python bookkeeping costs as much as ~1000 slots)
+PRIMITIVE_WORK = 1024
 _KEY_SHIFT = 40  # (buffer << 40) | byte offset identifies a stored position element
 #: buffer ids from here on are not buffers of the file: decoded meshopt views (+ view index),
 #: decoded Draco positions (+ 2**20 + primitive number) and positions with no storage at all
@@ -909,7 +911,7 @@ class _Reader:
         accessors = _as_list(gltf, "accessors", "accessors")
         meshes = _as_list(gltf, "meshes", "meshes")
         limits.check("meshes", len(meshes))
-        total_faces = 0
+        total_faces = n_prims = 0
         parts: list[MeshPart] = []
         part_slots: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         positions: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}
@@ -934,6 +936,7 @@ class _Reader:
                     continue
                 if mode not in _TRIANGLE_MODES:
                     raise MeshFormatError(f"unknown primitive mode {mode}", pwhere)
+                n_prims += 1
                 pos_index = attributes["POSITION"]
                 _item(accessors, pos_index, "accessors", pwhere)
                 awhere = f"accessors[{pos_index}]"
@@ -945,7 +948,7 @@ class _Reader:
                     self.total_slots += count
                     total_faces += len(tri)
                     limits.check("faces", total_faces)
-                    _check_work(self.total_slots + total_faces, len(self.data))
+                    _check_work(self.total_slots + total_faces + PRIMITIVE_WORK * n_prims, len(self.data))
                     pos_list.append(pos)
                     tri_list.append(tri + n_slots if n_slots else tri)
                     buf_list.append(np.full(count, vid, dtype=np.int64))
@@ -973,7 +976,7 @@ class _Reader:
                     n_faces = icount // 3 if mode == 4 else max(icount - 2, 0)
                     total_faces += n_faces
                     limits.check("faces", total_faces)
-                    _check_work(self.total_slots + total_faces, len(self.data))
+                    _check_work(self.total_slots + total_faces + PRIMITIVE_WORK * n_prims, len(self.data))
                     # a view of the stored indices: weld() converts the triangles to int64 once
                     seq = np.ndarray(
                         (icount,), dtype=dtype, buffer=self._buffer(ib), offset=istart, strides=(istride,)
@@ -984,7 +987,7 @@ class _Reader:
                 else:
                     total_faces += count // 3 if mode == 4 else max(count - 2, 0)
                     limits.check("faces", total_faces)
-                    _check_work(self.total_slots + total_faces, len(self.data))
+                    _check_work(self.total_slots + total_faces + PRIMITIVE_WORK * n_prims, len(self.data))
                     seq = np.arange(count, dtype=np.int64)
                 tri = _triangles(seq, mode)
                 first = block_of.setdefault(pos_index, (n_slots, count))[0]
@@ -1038,7 +1041,7 @@ class _Reader:
 def _check_work(work: int, file_bytes: int) -> None:
     """Refuse files whose meshes reuse stored data for much more work than the file holds.
 
-    The work grows with the slots and faces of all meshes; a small file whose meshes all point at
+    The work grows with the slots, faces and primitives of all meshes; a small file whose meshes all point at
     one accessor (a 93 KB GLB of 256 meshes: 10 s of work) would make it grow without the bytes.
     Stored once, a slot takes 12 bytes and a face at least 3, so the work stays linear in size.
     """
