@@ -20,7 +20,7 @@ from app.jobs import Runner
 from app.memory_jobs import InMemoryJobStore, LocalJobRunner
 from app.metrics import Metrics
 from app.middleware import BodyLimitMiddleware, MetricsMiddleware
-from app.overload import MemoryGuard, UploadBudget
+from app.overload import MemoryGuard, UploadBudget, map_large_allocations
 from app.problems import BAD_FORM, Problem, install_problem_handlers, problem_responses
 from app.routes import V1_ROUTERS, health
 from app.tracing import close_registry, configure_registry
@@ -61,6 +61,7 @@ def make_runner(settings: Settings, pool: WorkerPool) -> Runner:
 @asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings: Settings = app.state.settings
+    map_large_allocations()
     pool = WorkerPool(workers=settings.workers, slots=settings.admission_slots,
                       timeout=settings.job_timeout_seconds, memory_mb=settings.worker_memory_mb,
                       max_tasks=settings.worker_max_tasks)

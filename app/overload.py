@@ -7,9 +7,14 @@ Both are checked before work is taken on; beyond them a request gets ``busy`` (4
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import os
 
 from app.problems import BUSY, ProblemError
+
+#: glibc's mallopt parameter: allocations from this size up get their own mapping
+_M_MMAP_THRESHOLD = -3
 
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 
@@ -21,6 +26,22 @@ def resident_bytes() -> int | None:
             return int(f.read().split()[1]) * _PAGE
     except (OSError, ValueError, IndexError):
         return None
+
+
+def map_large_allocations(threshold: int = 1 << 20) -> bool:
+    """Have glibc give every allocation of ``threshold`` bytes or more its own memory mapping,
+    returned to the system when freed.
+
+    By default glibc raises that threshold after the first large free (up to 32 MiB), so the
+    uploads and results of a burst of jobs stay in the heap and the process keeps the burst's peak
+    for good (measured: 20 jobs of 30 MB left the API process at 700 MB after they were deleted).
+    Returns whether the setting was applied (glibc only)."""
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name) if name else None
+        return bool(libc is not None and libc.mallopt(_M_MMAP_THRESHOLD, threshold))
+    except (OSError, AttributeError):
+        return False
 
 
 class UploadBudget:

@@ -17,7 +17,7 @@ from typing import Any
 
 from bench.common import DEFAULT_OUT, cpu_model, git_revision
 
-SECTIONS = ("load", "fuzz_upload", "schemathesis", "cost")
+SECTIONS = ("load", "load_memory", "fuzz_upload", "schemathesis", "cost")
 
 
 def run_info() -> dict[str, Any]:
