@@ -562,8 +562,8 @@ def main(argv: list[str] | None = None) -> int:
 
         # 4. stalled clients, 5. a job flood: their own section of the results
         time.sleep(2)
-        memory_bad = args.stall_clients > 0 and memory_scenarios(args, port, server.pid, valid_body, reference,
-                                                                 info)
+        memory_bad = args.stall_clients > 0 and memory_scenarios(args, port, server.pid, valid_body,
+                                                                 reference, info)
     finally:
         server.send_signal(signal.SIGTERM)
         try:
