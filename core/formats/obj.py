@@ -120,7 +120,7 @@ def read(data: bytes, limits: Limits, name: str = "obj") -> ObjDocument:
     fl = np.flatnonzero(keyword_mask(arr, lines, b"f"))
     n_lines = int(np.count_nonzero(keyword_mask(arr, lines, b"l") | keyword_mask(arr, lines, b"p")))
     limits.check("vertices", int(vl.size))
-    limits.check("faces", int(fl.size))  # each face line is one face at least: before tokenising
+    limits.check("faces", int(fl.size))  # face lines, before tokenising (skipped short ones cost as much)
     part_name = ""
     o_lines = np.flatnonzero(keyword_mask(arr, lines, b"o"))
     if o_lines.size:
