@@ -140,10 +140,10 @@ def test_retry_after_counts_the_time_running_tasks_have_taken(slow_ply, sphere_o
     with make_client(workers=1, queue_size=1) as client:
         job = client.post("/v1/jobs/embed", files={"mesh": ("slow.ply", slow_ply)}, data={"key": KEY}).json()
         assert wait_for(lambda: client.get(f"/v1/jobs/{job['id']}").json()["state"] == "running", timeout=30)
-        time.sleep(4)
+        time.sleep(1.5)  # the job runs for several seconds; main said 1 (the mean of no finished task)
         response = embed(client, "s.obj", sphere_obj)
         assert_problem(response, 429, "busy")
-        assert int(response.headers["retry-after"]) >= 4
+        assert int(response.headers["retry-after"]) >= 2
         client.delete(f"/v1/jobs/{job['id']}")
 
 
