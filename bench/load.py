@@ -33,12 +33,13 @@ import struct
 import subprocess
 import tempfile
 import time
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import httpx
+import psutil
 import trimesh
 
 from bench.common import DEFAULT_OUT, mesh_path
@@ -275,53 +276,45 @@ def summarise(label: str, rate: float, results: list[Result], job_timeout: float
     }
 
 
-async def sampled_phase(phase: Awaitable[list[Result]], pid: int | None
-                        ) -> tuple[list[Result], list[tuple[float, float]]]:
-    """Await a :func:`run_phase`, sampling the RSS of ``pid`` and its workers every second (no
-    samples when ``pid`` is None)."""
+async def _sampled(work: Awaitable[Any], probe: Callable[[], float], interval: float
+                   ) -> tuple[Any, list[tuple[float, float]]]:
+    """Await ``work`` while recording ``(seconds since start, probe())`` every ``interval`` s,
+    and once more at the end."""
     samples: list[tuple[float, float]] = []
     start = time.perf_counter()
-    if pid is None:
-        return await phase, samples
 
     async def sample() -> None:
         while True:
-            samples.append((time.perf_counter() - start, tree_rss_mb(pid)))
-            await asyncio.sleep(1.0)
-
-    sampler = asyncio.create_task(sample())
-    try:
-        results = await phase
-    finally:
-        sampler.cancel()
-    samples.append((time.perf_counter() - start, tree_rss_mb(pid)))
-    return results, samples
-
-
-def process_rss_mb(pid: int) -> float:
-    """Resident memory of ``pid`` alone (the API process, not its workers), MiB."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return 0.0
-
-
-async def _sampling(pid: int, work: Awaitable[Any]) -> tuple[Any, list[float]]:
-    """Await ``work`` while sampling the API process's RSS every 0.5 s."""
-    samples: list[float] = []
-
-    async def sample() -> None:
-        while True:
-            samples.append(process_rss_mb(pid))
-            await asyncio.sleep(0.5)
+            samples.append((time.perf_counter() - start, probe()))
+            await asyncio.sleep(interval)
 
     sampler = asyncio.create_task(sample())
     try:
         result = await work
     finally:
         sampler.cancel()
-    samples.append(process_rss_mb(pid))
+    samples.append((time.perf_counter() - start, probe()))
     return result, samples
+
+
+async def sampled_phase(phase: Awaitable[list[Result]], pid: int | None
+                        ) -> tuple[list[Result], list[tuple[float, float]]]:
+    """Await a :func:`run_phase`, sampling the RSS of ``pid`` and its workers every second (no
+    samples when ``pid`` is None)."""
+    if pid is None:
+        return await phase, []
+    return await _sampled(phase, lambda: tree_rss_mb(pid), 1.0)
+
+
+def process_rss_mb(pid: int) -> float:
+    """Resident memory of ``pid`` alone (the API process, not its workers), MiB."""
+    return float(psutil.Process(pid).memory_info().rss) / (1 << 20)
+
+
+async def _sampling(pid: int, work: Awaitable[Any]) -> tuple[Any, list[float]]:
+    """Await ``work`` while sampling the API process's RSS every 0.5 s."""
+    result, samples = await _sampled(work, lambda: process_rss_mb(pid), 0.5)
+    return result, [rss for _, rss in samples]
 
 
 async def stalled_clients(port: int, pid: int, clients: int, each: int, valid: bytes, reference: bytes,
