@@ -41,16 +41,19 @@ from core.coding import whitening
 from core.detection import _soft_values, _votes
 from core.embedding import embed_parts
 from core.errors import CapacityError, PayloadError
-from core.formats import DEFAULT_LIMITS, FORMATS, Limits, read_mesh
+from core.formats import DEFAULT_LIMITS, Limits, read_mesh
 from core.options import Options
 from core.pipeline import (
     Milestones,
     _analyses,
     _distortion,
     _no_progress,
+    _part_info,
     _part_quantizer,
     _scaled,
     _usable_parts,
+    _with_parts,
+    _written,
 )
 from core.reports import EmbeddedFile, EmbedReport, Progress
 from core.slots import HASHED_FROM
@@ -165,21 +168,17 @@ def embed_codeword(data: bytes, options: Options, *, codeword: np.ndarray | None
         raise CapacityError(f"the fingerprint reads back with score {score:.1f}, below "
                             f"{MIN_EMBED_SCORE:.1f}; try a larger strength (now {s:g})",
                             carriers=carriers, needed=HASHED_FROM * L)
-    new = [p.vertices.copy() for p in doc.parts]
-    for k, i in enumerate(parts):
-        new[i] = vs[k]
+    new = _with_parts(doc, parts, vs)
     moved, rms, mx, haus = _distortion(doc, new, {i: prepared[k][0] for k, i in enumerate(parts)})
     report(Milestones.MEASURED)
-    info = [{"name": doc.parts[i].name, "vertices": len(doc.parts[i].vertices), "carriers": stats[k].carriers,
-             "skipped": stats[k].skipped, "moved": stats[k].moved} for k, i in enumerate(parts)]
     rep = EmbedReport(method=method, strength=s, payload_bits=L, key_derived=False, codeword_bits=L,
                       carriers=carriers, copies=round(carriers / L, 3),
                       skipped=sum(st.skipped for st in stats), vertices_moved=moved, rms_displacement=rms,
-                      max_displacement=mx, hausdorff=haus, decimals=doc.decimals, cap_factor=1.0, parts=info)
-    out = doc.write(new, decimals=doc.decimals) if doc.decimals is not None else doc.write(new)
+                      max_displacement=mx, hausdorff=haus, decimals=doc.decimals, cap_factor=1.0,
+                      parts=_part_info(doc, parts, stats))
+    written = _written(doc, new, rep, doc.decimals)
     report(1.0)
-    spec = FORMATS[doc.format]
-    return Fingerprinted(EmbeddedFile(out, rep, doc.format, spec.media_type, spec.extension), cw, score)
+    return Fingerprinted(written, cw, score)
 
 
 def codeword_votes(analyses: list[Analysis], key: str | bytes, length: int,

@@ -10,7 +10,7 @@ import numpy as np
 from core.analysis import Analysis, analyse_methods, prepare
 from core.coding import KEY_CODE_BITS, MAX_PAYLOAD_BITS, codeword_length, encode
 from core.detection import detect_analyses
-from core.embedding import Quantize, embed_parts
+from core.embedding import EmbedStats, Quantize, embed_parts
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, FORMATS, Limits, MeshDocument, MeshPart, read_mesh, weld
 from core.mesh import Adjacency, bbox_diagonal
@@ -192,6 +192,30 @@ def _part_quantizer(doc: MeshDocument, parts: list[int], decimals: int | None) -
     return lambda k, index, v: doc.quantize_part(parts[k], index, v, decimals)
 
 
+def _with_parts(doc: MeshDocument, parts: list[int], vs: list[np.ndarray]) -> list[np.ndarray]:
+    """Every part's vertices: the embedder's ``vs`` for the usable ``parts``, copies elsewhere."""
+    new = [p.vertices.copy() for p in doc.parts]
+    for k, i in enumerate(parts):
+        new[i] = vs[k]
+    return new
+
+
+def _part_info(doc: MeshDocument, parts: list[int], stats: list[EmbedStats]) -> list[dict[str, object]]:
+    """The report's per-part rows (name, vertices, carriers, skipped, moved)."""
+    return [{"name": doc.parts[i].name, "vertices": len(doc.parts[i].vertices), "carriers": stats[k].carriers,
+             "skipped": stats[k].skipped, "moved": stats[k].moved} for k, i in enumerate(parts)]
+
+
+def _written(doc: MeshDocument, new: list[np.ndarray], rep: EmbedReport,
+             decimals: int | None) -> EmbeddedFile:
+    """The file with ``new`` positions, in its own format and encoding, and the report completed
+    with what the file itself says (elements skipped, encodings re-encoded)."""
+    out = doc.write(new, decimals=decimals) if decimals is not None else doc.write(new)
+    rep = replace(rep, skipped_elements=doc.skipped_elements, reencoded=list(doc.reencoded))
+    spec = FORMATS[doc.format]
+    return EmbeddedFile(out, rep, doc.format, spec.media_type, spec.extension)
+
+
 def embed_mesh(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, *, payload: str | None = None,
                method: str = DEFAULT_METHOD, strength: float | None = None) -> tuple[np.ndarray, EmbedReport]:
     """Array-level embedding.
@@ -253,11 +277,9 @@ def embed(data: bytes, options: Options, *, filename: str | None = None, limits:
     doc = read_mesh(data, filename, limits)
     report(Milestones.READ)
     new, rep, dec = _embed_doc(doc, options, report)
-    out = doc.write(new, decimals=dec) if dec is not None else doc.write(new)
-    rep = replace(rep, skipped_elements=doc.skipped_elements, reencoded=list(doc.reencoded))
+    written = _written(doc, new, rep, dec)
     report(1.0)
-    spec = FORMATS[doc.format]
-    return EmbeddedFile(out, rep, doc.format, spec.media_type, spec.extension)
+    return written
 
 
 def embed_file(data: bytes, key: str | bytes, *, filename: str | None = None, payload: str | None = None,
@@ -295,14 +317,12 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress,
         return Milestones.MOVED + span * (1 - 0.5**k)
 
     for attempt, (budget, factor, dec) in enumerate(tries):
-        new = [p.vertices.copy() for p in doc.parts]
         tol = replace(TOL, coarse_move=TOL.coarse_move * factor, max_local_move=TOL.max_local_move * factor,
                       max_move=TOL.max_move * factor)
         vs, stats, final = embed_parts(meshes, key, codeword, method, s, tol=tol, prepared=prepared,
                                        quantize=_part_quantizer(doc, parts, dec), rms_budget=budget,
                                        diagonal=diagonal)
-        for k, i in enumerate(parts):
-            new[i] = vs[k]
+        new = _with_parts(doc, parts, vs)
         carriers = sum(st.carriers for st in stats)
         skipped = sum(st.skipped for st in stats)
         report(attempt_start(attempt))
@@ -333,17 +353,11 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress,
                             + (_what_fits(doc, options) if probe else ""), carriers=carriers, needed=L)
     moved, rms, mx, haus = _distortion(doc, new, {i: prepared[k][0] for k, i in enumerate(parts)})
     report(Milestones.MEASURED)
-    part_info = []
-    for k, i in enumerate(parts):
-        part_info.append({"name": doc.parts[i].name, "vertices": len(doc.parts[i].vertices),
-                          "carriers": stats[k].carriers, "skipped": stats[k].skipped,
-                          "moved": stats[k].moved})
     rep = EmbedReport(method=method, strength=s, payload_bits=KEY_CODE_BITS if bits is None else len(bits),
                       key_derived=bits is None, codeword_bits=L, carriers=carriers,
                       copies=round(carriers / L, 3), skipped=skipped, vertices_moved=moved,
                       rms_displacement=rms, max_displacement=mx, hausdorff=haus, decimals=dec,
-                      cap_factor=factor,
-                      parts=part_info)
+                      cap_factor=factor, parts=_part_info(doc, parts, stats))
     return new, rep, dec
 
 

@@ -115,3 +115,13 @@ def test_real_mesh_copy_is_traced_to_its_recipient_and_an_average_to_both() -> N
 def test_a_payload_is_refused() -> None:
     with pytest.raises(PayloadError):
         embed_codeword(b"", Options(key="k", payload="01"))
+
+
+def test_a_copy_reports_what_the_file_skipped_like_an_embedding() -> None:
+    """Copies are written by the same step as embeddings: two-corner faces and line elements are
+    carried through and counted in the copy's report too."""
+    path = shared_mesh_path("rocker-arm.obj")
+    data = path.read_bytes() + b"l 1 2\nf 1 2\n"
+    copy = embed_codeword(data, Options(key="tracing-test"), rng=np.random.default_rng(5), filename=path.name)
+    assert copy.file.report.skipped_elements == 2
+    assert copy.file.data.endswith(b"l 1 2\nf 1 2\n") and copy.file.report.reencoded == []
