@@ -11,20 +11,19 @@ import ctypes
 import ctypes.util
 import os
 
+import psutil
+
 from app.problems import BUSY, ProblemError
 
 #: glibc's mallopt parameter: allocations from this size up get their own mapping
 _M_MMAP_THRESHOLD = -3
 
-_PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
-
 
 def resident_bytes() -> int | None:
-    """Resident memory of this process (Linux ``/proc/self/statm``), None where unknown."""
+    """Resident memory of this process (psutil, as elsewhere in the service), None where unknown."""
     try:
-        with open("/proc/self/statm", "rb") as f:
-            return int(f.read().split()[1]) * _PAGE
-    except (OSError, ValueError, IndexError):
+        return int(psutil.Process(os.getpid()).memory_info().rss)
+    except psutil.Error:
         return None
 
 
