@@ -16,6 +16,7 @@ from core.formats import DEFAULT_LIMITS, FORMATS, Limits, MeshDocument, MeshPart
 from core.mesh import Adjacency, bbox_diagonal
 from core.options import DEFAULT_METHOD, METHODS, Options
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
+from core.resample import undo_subdivision
 from core.slots import own_copy
 from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE
 from core.tolerances import TOL
@@ -418,11 +419,46 @@ def detect_file(data: bytes, key: str | bytes, *, filename: str | None = None, p
 
 
 def _detect_doc(doc: MeshDocument, options: Options, analysed: Progress = _no_progress) -> DetectResult:
-    """``analysed`` follows the analysis of the parts (0 to 1); decoding comes after."""
+    """``analysed`` follows the analysis of the parts (0 to 1); decoding comes after.
+
+    When the file does not read and some of its meshes are one 1-to-4 subdivision step of a coarser
+    mesh (midpoint or Loop, :func:`core.resample.undo_subdivision`), the coarse meshes are read as
+    a second view; a detection there reports ``resampled`` and a false-positive figure doubled (the
+    union bound over both views)."""
     key = options.secret
     parts = _usable_parts(doc)
     analyses = _analyses(doc, parts, key, options.detect_methods, analysed)
-    return detect_analyses(analyses, key, options.payload_bits)
+    found = detect_analyses(analyses, key, options.payload_bits)
+    if found.detected:
+        return found
+    coarse = _coarsened(doc, parts)
+    if coarse is None:
+        return found
+    doc2, scheme = coarse
+    second = detect_analyses(_analyses(doc2, list(range(len(doc2.parts))), key, options.detect_methods), key,
+                             options.payload_bits)
+    if not second.detected:
+        return found
+    return replace(second, resampled=scheme,
+                   false_positive_probability=min(1.0, 2.0 * second.false_positive_probability))
+
+
+def _coarsened(doc: MeshDocument, parts: list[int]) -> tuple[MeshDocument, str] | None:
+    """The usable parts with every subdivided one replaced by its coarse mesh, and the scheme
+    (``"midpoint"``, ``"loop"``, or both joined by ``+``), or None when no part is subdivided."""
+    meshes, schemes = [], []
+    for i in parts:
+        p = doc.parts[i]
+        undone = undo_subdivision(p.vertices, p.faces)
+        if undone is None:
+            meshes.append((p.vertices, p.faces))
+            continue
+        scheme, v, f = undone
+        schemes.append(scheme)
+        meshes.append((v, f))
+    if not schemes:
+        return None
+    return _ArrayDoc(meshes), "+".join(sorted(set(schemes)))
 
 
 def _largest_payload(carriers: float) -> int:
