@@ -52,18 +52,36 @@ def adaptive_threshold(z: np.ndarray) -> float:
     return t
 
 
-def _soft_values(analyses: list[Analysis], adaptive: bool) -> list[np.ndarray]:
-    """Per-carrier vote in [-1, 1] (> 0 reads 0), before de-whitening.
+#: how the carriers' statistics become votes: the embedder's boundary with hard votes, the adaptive
+#: threshold with clipped soft votes, and the adaptive threshold weighted by the carrier's scale
+HARD, ADAPTIVE, SCALED = 0, 1, 2
+#: soft votes are clipped at this many median deviations in the scaled variant
+SCALED_CLIP = 3.0
 
-    ``adaptive``: statistics centred on :func:`adaptive_threshold` and scaled by their median
-    deviation (soft votes); otherwise the embedding's own boundary (z = 0) and hard votes.
+
+def _soft_values(analyses: list[Analysis], adaptive: int) -> list[np.ndarray]:
+    """Per-carrier vote (> 0 reads 0), before de-whitening.
+
+    ``adaptive``: :data:`HARD` (or False): the embedding's own boundary (z = 0) and hard votes;
+    :data:`ADAPTIVE` (or True): statistics centred on :func:`adaptive_threshold`, scaled by their
+    median deviation and clipped to [-1, 1]; :data:`SCALED`: the same clipped at
+    :data:`SCALED_CLIP` and weighted by the carrier's local scale ``s`` over the median one,
+    divided by the largest so that votes stay in [-1, 1]. ``z`` is in units of ``s``, so an attack
+    that adds the same absolute error to every vertex (quantisation, noise of a fixed amplitude)
+    moves the ``z`` of a carrier with a small ring the most: weighting by ``s`` is the matched
+    filter for it.
     """
     out = []
     for a in analyses:
         if adaptive and len(a.z):
             zc = a.z - adaptive_threshold(a.z)
             w = float(np.median(np.abs(zc))) or 1.0
-            out.append(np.clip(zc / w, -1.0, 1.0))
+            if adaptive == SCALED:
+                weight = a.scale / (float(np.median(a.scale)) or 1.0)
+                x = np.clip(zc / w, -SCALED_CLIP, SCALED_CLIP) * weight
+                out.append(x / (float(np.abs(x).max()) or 1.0))
+            else:
+                out.append(np.clip(zc / w, -1.0, 1.0))
         else:
             out.append(np.where(a.z > 0, 1.0, -1.0))
     return out
@@ -127,9 +145,10 @@ def _posterior(slots: np.ndarray, raw: np.ndarray, sign: np.ndarray, sums: np.nd
     return soft_decode(log_odds(p) * sums), p
 
 
-#: decoding variants (adaptive threshold, slot assignment): the embedder's own, then the ones
-#: that survive attacks (global shifts of the statistics; crops that change the carrier count)
-VARIANTS = ((False, None), (True, None), (True, True), (True, False))
+#: decoding variants (votes, slot assignment): the embedder's own, then the ones that survive
+#: attacks (global shifts of the statistics; crops that change the carrier count; absolute errors
+#: of every vertex, which the scale-weighted votes read; measurements in core/README.md, section 5)
+VARIANTS = ((HARD, None), (ADAPTIVE, None), (ADAPTIVE, True), (ADAPTIVE, False), (SCALED, None))
 
 
 def _same_as_auto(analyses: list[Analysis], L: int, ranked: bool | None) -> bool:
@@ -196,17 +215,17 @@ class _MethodDecoder:
                       for a in analyses]
         #: with an expected payload, the closest candidate so far
         self.near: DetectResult | None = None
-        self.values = {adaptive: _soft_values(analyses, adaptive) for adaptive in (False, True)}
+        self.values = {mode: _soft_values(analyses, mode) for mode in (HARD, ADAPTIVE, SCALED)}
         self.cache: dict = {}
 
-    def try_variant(self, adaptive: bool, ranked: bool | None, key_code_only: bool
+    def try_variant(self, adaptive: int, ranked: bool | None, key_code_only: bool
                     ) -> tuple[float, DetectResult] | None:
         """The first successful candidate of this variant, with its carrier error rate: the
         key-derived code (``key_code_only``: the paper's default mode, one candidate) or else the
         explicit payload lengths."""
         return self._key_code(adaptive, ranked) if key_code_only else self._explicit(adaptive, ranked)
 
-    def _key_code(self, adaptive: bool, ranked: bool | None) -> tuple[float, DetectResult] | None:
+    def _key_code(self, adaptive: int, ranked: bool | None) -> tuple[float, DetectResult] | None:
         analyses, carriers = self.analyses, self.carriers
         L = codeword_length(None)
         if self.expected is not None or _same_as_auto(analyses, L, ranked):
@@ -226,7 +245,7 @@ class _MethodDecoder:
             crc_ok=False, method=self.method, key_derived=True, bit_errors=errors,
             p_value=binomial_tail(errors, KEY_CODE_BITS), parts=self.parts)
 
-    def _explicit(self, adaptive: bool, ranked: bool | None) -> tuple[float, DetectResult] | None:
+    def _explicit(self, adaptive: int, ranked: bool | None) -> tuple[float, DetectResult] | None:
         analyses, key, expected, carriers = self.analyses, self.key, self.expected, self.carriers
         method, parts, cache = self.method, self.parts, self.cache
         n_tries, fpp_total = self.n_tries, self.fpp_total

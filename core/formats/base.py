@@ -156,8 +156,8 @@ def weld(
     -------
     vertices : (n, 3) float64
         Unique positions, in order of first appearance among the slots; then, kept apart, the
-        slots that share a position with another slot *of the same triangle* (neighbours made to
-        coincide by rounding, not copies of one vertex).
+        slots that share a position with a neighbouring slot, or with a slot they share two
+        neighbours with (neighbours made to coincide by rounding, not copies of one vertex).
     faces : (m', 3) int64
         Triangles into ``vertices`` with degenerate (repeated-slot) triangles removed.
     slot_to_vertex : (k,) int64
@@ -182,21 +182,57 @@ def weld(
         return pos, _nondegenerate(tri, shared), slot_to_vertex
     vertices = pos[first]
     faces = slot_to_vertex[tri] if tri.size else np.zeros((0, 3), np.int64)
-    # Distinct slots of one face that share a position were not split copies of one vertex (UV
-    # seams, STL soups) but neighbours that a rounding (quantisation, float32) made coincide:
-    # welding them would collapse an edge and change the connectivity.  Keep such slots apart.
-    clash = np.zeros(tri.shape, bool)
-    for a, b in ((0, 1), (1, 2), (0, 2)):
-        same = (faces[:, a] == faces[:, b]) & (tri[:, a] != tri[:, b])
-        clash[:, a] |= same
-        clash[:, b] |= same
-    if clash.any():
-        split = np.unique(tri[clash])
+    # Slots that share a position are copies of one vertex (UV seams, STL soups) or neighbours
+    # that a rounding (quantisation, float32) made coincide.  Welding copies gives a manifold
+    # vertex; welding neighbours collapses an edge (two corners of one triangle) or makes an edge
+    # of more than two faces out of different ones (two vertices with a common neighbour): keep
+    # such slots apart.
+    split = _coinciding_neighbours(tri, faces, slot_to_vertex)
+    if split.size:
         slot_to_vertex = slot_to_vertex.copy()
         slot_to_vertex[split] = len(vertices) + np.arange(split.size)
         vertices = np.concatenate([vertices, pos[split]])
         faces = slot_to_vertex[tri]
     return vertices, _nondegenerate(faces, False), slot_to_vertex
+
+
+def _coinciding_neighbours(tri: np.ndarray, faces: np.ndarray, slot_to_vertex: np.ndarray) -> np.ndarray:
+    """Slots (sorted) that welding would join to a neighbour: two slots of one triangle at one
+    position, or the welded corners of an edge that more than two triangles use and that welding
+    made out of different slot edges (a slot edge the file itself shares three times is left
+    alone: non-manifold CAD edges are not a rounding)."""
+    clash = np.zeros(tri.shape, bool)
+    for a, b in ((0, 1), (1, 2), (0, 2)):
+        same = (faces[:, a] == faces[:, b]) & (tri[:, a] != tri[:, b])
+        clash[:, a] |= same
+        clash[:, b] |= same
+    m = len(tri)
+    if m:
+        ends = ((0, 1), (1, 2), (2, 0))
+        fa = np.concatenate([faces[:, i] for i, _ in ends])
+        fb = np.concatenate([faces[:, j] for _, j in ends])
+        n = int(faces.max()) + 1
+        _, inv, count = np.unique(np.minimum(fa, fb) * n + np.maximum(fa, fb), return_inverse=True,
+                                  return_counts=True)
+        crowded = np.flatnonzero((count[inv] > 2) & (fa != fb))  # face-edges of edges of 3+ faces
+        if crowded.size:
+            sa = np.concatenate([tri[:, i] for i, _ in ends])[crowded]
+            sb = np.concatenate([tri[:, j] for _, j in ends])[crowded]
+            k = int(tri.max()) + 1
+            slot_edge = np.minimum(sa, sb) * k + np.maximum(sa, sb)
+            pairs = np.unique(np.stack([inv[crowded], slot_edge], 1), axis=0)
+            made = np.bincount(pairs[:, 0], minlength=len(count)) > 1  # from different slot edges
+            hit = crowded[made[inv[crowded]]]
+            rows, which = hit % m, hit // m
+            for e, (i, j) in enumerate(ends):
+                clash[rows[which == e], i] = True
+                clash[rows[which == e], j] = True
+    if not clash.any():
+        return np.zeros(0, np.int64)
+    candidates = np.unique(tri[clash])
+    # only slots that share their welded vertex with another slot are split off
+    sizes = np.bincount(slot_to_vertex)
+    return candidates[sizes[slot_to_vertex[candidates]] > 1]
 
 
 def _nondegenerate(faces: np.ndarray, copy: bool) -> np.ndarray:

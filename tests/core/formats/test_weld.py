@@ -59,3 +59,49 @@ def test_copy_keeps_the_inputs_untouched() -> None:
     fresh = np.array([[1.0, 2, 3], [4, 5, 6], [7, 8, 9]])
     v2, f2, _ = weld(fresh, np.array([[0, 1, 2]]), copy=False)
     assert np.shares_memory(v2, fresh) and f2.tolist() == [[0, 1, 2]]
+
+
+def _grid(n: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """An n x n grid of vertices in the plane, two triangles per cell."""
+    x, y = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float))
+    pos = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], 1)
+    i = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    tri = np.concatenate([np.stack([i, i + 1, i + n + 1], 1), np.stack([i, i + n + 1, i + n], 1)])
+    return pos, tri
+
+
+def _edge_use(faces: np.ndarray) -> np.ndarray:
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    return np.unique(e, axis=0, return_counts=True)[1]
+
+
+def test_neighbours_made_to_coincide_stay_apart() -> None:
+    """Two vertices with common neighbours that a rounding put on one position (8-bit
+    quantisation does this to neighbours two rings apart) are not welded: welding them made edges
+    of four faces and changed every label around them."""
+    pos, tri = _grid()
+    a, c = 14, 16  # two apart on one row: common neighbours 15 and others
+    pos[c] = pos[a]
+    v, f, s2v = weld(pos, tri)
+    assert s2v[a] != s2v[c]
+    assert _edge_use(f).max() <= 2
+    assert len(np.unique(f)) == len(pos)
+
+
+def test_seam_copies_are_still_welded() -> None:
+    """A seam (the grid cut along a column, each side with its own copies of the cut vertices,
+    as a UV seam or an STL soup stores them) welds back to the uncut grid."""
+    pos, tri = _grid()
+    n = 6
+    cut = np.arange(n) * n + 3  # column 3
+    copies = len(pos) + np.arange(n)
+    pos2 = np.concatenate([pos, pos[cut]])
+    tri2 = tri.copy()
+    right = pos[tri].mean(axis=1)[:, 0] > 3  # faces right of the cut use the copies
+    remap = np.arange(len(pos))
+    remap[cut] = copies
+    tri2[right] = remap[tri[right]]
+    v, f, s2v = weld(pos2, tri2)
+    np.testing.assert_array_equal(s2v[copies], s2v[cut])
+    assert len(np.unique(f)) == len(pos)
+    assert _edge_use(f).max() <= 2
