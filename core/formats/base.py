@@ -212,17 +212,21 @@ def _coinciding_neighbours(tri: np.ndarray, faces: np.ndarray, slot_to_vertex: n
         fa = np.concatenate([faces[:, i] for i, _ in ends])
         fb = np.concatenate([faces[:, j] for _, j in ends])
         n = int(faces.max()) + 1
-        _, inv, count = np.unique(np.minimum(fa, fb) * n + np.maximum(fa, fb), return_inverse=True,
-                                  return_counts=True)
-        crowded = np.flatnonzero((count[inv] > 2) & (fa != fb))  # face-edges of edges of 3+ faces
-        if crowded.size:
+        key = np.where(fa != fb, np.minimum(fa, fb) * n + np.maximum(fa, fb), -1)
+        ordered = np.sort(key)
+        # welded edges of three or more faces: rare, so find their keys first (one sort) and
+        # only then their face-edges
+        crowded_keys = np.unique(ordered[2:][(ordered[2:] == ordered[:-2]) & (ordered[2:] >= 0)])
+        if crowded_keys.size:
+            crowded = np.flatnonzero(np.isin(key, crowded_keys))
             sa = np.concatenate([tri[:, i] for i, _ in ends])[crowded]
             sb = np.concatenate([tri[:, j] for _, j in ends])[crowded]
             k = int(tri.max()) + 1
+            edge = np.searchsorted(crowded_keys, key[crowded])
             slot_edge = np.minimum(sa, sb) * k + np.maximum(sa, sb)
-            pairs = np.unique(np.stack([inv[crowded], slot_edge], 1), axis=0)
-            made = np.bincount(pairs[:, 0], minlength=len(count)) > 1  # from different slot edges
-            hit = crowded[made[inv[crowded]]]
+            pairs = np.unique(np.stack([edge, slot_edge], 1), axis=0)
+            made = np.bincount(pairs[:, 0], minlength=len(crowded_keys)) > 1  # from different slot edges
+            hit = crowded[made[edge]]
             rows, which = hit % m, hit // m
             for e, (i, j) in enumerate(ends):
                 clash[rows[which == e], i] = True
