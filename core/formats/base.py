@@ -200,7 +200,8 @@ def _coinciding_neighbours(tri: np.ndarray, faces: np.ndarray, slot_to_vertex: n
     """Slots (sorted) that welding would join to a neighbour: two slots of one triangle at one
     position, or the welded corners of an edge that more than two triangles use and that welding
     made out of different slot edges (a slot edge the file itself shares three times is left
-    alone: non-manifold CAD edges are not a rounding)."""
+    alone: non-manifold CAD edges are not a rounding), when the slot has faces of its own (a soup's
+    corners are welded regardless: apart, they would have no neighbour at all)."""
     clash = np.zeros(tri.shape, bool)
     for a, b in ((0, 1), (1, 2), (0, 2)):
         same = (faces[:, a] == faces[:, b]) & (tri[:, a] != tri[:, b])
@@ -228,9 +229,13 @@ def _coinciding_neighbours(tri: np.ndarray, faces: np.ndarray, slot_to_vertex: n
             made = np.bincount(pairs[:, 0], minlength=len(crowded_keys)) > 1  # from different slot edges
             hit = crowded[made[edge]]
             rows, which = hit % m, hit // m
+            # a slot of a single face (an STL soup's corner) would be left without any neighbour:
+            # only slots with connectivity of their own are kept apart this way
+            shared = np.bincount(tri.ravel(), minlength=k) > 1
             for e, (i, j) in enumerate(ends):
-                clash[rows[which == e], i] = True
-                clash[rows[which == e], j] = True
+                r = rows[which == e]
+                clash[r, i] |= shared[tri[r, i]]
+                clash[r, j] |= shared[tri[r, j]]
     if not clash.any():
         return np.zeros(0, np.int64)
     candidates = np.unique(tri[clash])
