@@ -82,7 +82,7 @@ def test_neighbours_made_to_coincide_stay_apart() -> None:
     pos, tri = _grid()
     a, c = 14, 16  # two apart on one row: common neighbours 15 and others
     pos[c] = pos[a]
-    v, f, s2v = weld(pos, tri)
+    _v, f, s2v = weld(pos, tri)
     assert s2v[a] != s2v[c]
     assert _edge_use(f).max() <= 2
     assert len(np.unique(f)) == len(pos)
@@ -101,7 +101,7 @@ def test_seam_copies_are_still_welded() -> None:
     remap = np.arange(len(pos))
     remap[cut] = copies
     tri2[right] = remap[tri[right]]
-    v, f, s2v = weld(pos2, tri2)
+    _v, f, s2v = weld(pos2, tri2)
     np.testing.assert_array_equal(s2v[copies], s2v[cut])
     assert len(np.unique(f)) == len(pos)
     assert _edge_use(f).max() <= 2
