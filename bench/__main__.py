@@ -3,7 +3,8 @@
 ``formats`` and ``fuzz-formats`` (core.formats speed and fuzzing, issue 2) write ``formats.md``.
 ``pipelines`` (issue 13) runs gltfpack and glTF-Transform on marked GLBs (``pipelines.md``).
 ``identical --write FILE`` / ``--check FILE`` fingerprints every engine answer on the shared meshes
-(byte-identity across refactorings).
+(byte-identity across refactorings).  ``capacity-keys`` checks that every payload length capacity
+allows embeds, for many keys (``capacity_keys.md``).
 
 Results go to ``--out`` (default ``bench/results``) as markdown, JSON and PNG.
 """
@@ -105,6 +106,12 @@ def parser() -> argparse.ArgumentParser:
     which = ident.add_mutually_exclusive_group(required=True)
     which.add_argument("--write", metavar="FILE", help="record the fingerprints in FILE")
     which.add_argument("--check", metavar="FILE", help="compare with FILE; exit 1 on any difference")
+    # capacity exactness over many keys (issue 14); not in "all"
+    ck = sub.add_parser("capacity-keys", parents=[common],
+                        help="capacity with many keys, then every payload length it allows embedded")
+    ck.add_argument("--keys", type=int, default=50, help="keys key-0 ... (default: %(default)s)")
+    ck.add_argument("--payloads", type=int, default=2,
+                    help="random payloads per length (default: %(default)s)")
     return p
 
 
@@ -149,6 +156,11 @@ def main(argv: list[str] | None = None) -> int:
         from bench import identical
 
         return identical.run(args)
+    if args.suite == "capacity-keys":
+        from bench import capacity_keys
+
+        capacity_keys.run(args)
+        return 0
     if args.suite == "redis":
         from bench import redis_throughput
 

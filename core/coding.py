@@ -6,6 +6,12 @@ Frames
   nibble -> 56 bits.  The detector knows the code from the key and counts bit errors.
 * explicit payload of 1-256 bits: ``payload + CRC-32(length, payload)``, zero-padded to
   a multiple of 4, Hamming(7,4) per nibble.  The CRC makes a random match ~2**-32 per candidate.
+* compact, for payloads of 1-:data:`COMPACT_MAX_PAYLOAD` bits on meshes with few carriers: the
+  frame ``payload + free bits + CRC-32`` of :data:`COMPACT_BITS` bits times a keyed invertible
+  matrix, without Hamming.  The embedder chooses the free bits so that the carriers it cannot move
+  across their boundary already read what the codeword asks of them (a wet-paper code); every
+  codeword bit depends on the free bits through the matrix, so any few dozen such carriers can be
+  met.  The detector inverts the matrix and checks the CRC: 2**-32 per length tried.
 
 The codeword is XORed with a keyed pseudo-random mask (whitening), so that without the key
 the carriers' bits look like noise.
@@ -20,6 +26,7 @@ from math import comb, log
 
 import numpy as np
 
+from core import gf2
 from core.hashing import derive, derive_bytes
 
 MAX_PAYLOAD_BITS = 256
@@ -81,6 +88,87 @@ def encode(key: str | bytes, payload: np.ndarray | None) -> np.ndarray:
     else:
         cw = hamming_encode(np.concatenate([payload, crc_bits(payload)]))
     return cw ^ whitening(key, len(cw))
+
+
+#: compact frame: codeword bits, the longest payload, and the bits before the CRC (payload + free)
+COMPACT_BITS = 128
+COMPACT_MAX_PAYLOAD = 48
+COMPACT_DATA = COMPACT_BITS - CRC_BITS
+#: the compact frame is embedded, and tried by the detector, only below this many carriers (8
+#: copies of its codeword: above, the standard frame has room to spare)
+COMPACT_BELOW = 8 * COMPACT_BITS
+#: slots per hash bucket of the compact frame (:func:`core.slots.bucketed_slots`)
+COMPACT_BUCKET = 8
+
+
+def compact_crc(n: int, data: np.ndarray) -> np.ndarray:
+    """CRC-32 over a compact frame's payload length ``n`` and its data bits (payload + free)."""
+    raw = b"\xc7" + bytes([n - 1]) + np.packbits(data).tobytes()
+    v = zlib.crc32(raw)
+    return np.array([(v >> (CRC_BITS - 1 - i)) & 1 for i in range(CRC_BITS)], np.uint8)
+
+
+@lru_cache(maxsize=256)
+def compact_mixing(key: str | bytes) -> tuple[np.ndarray, np.ndarray]:
+    """The keyed invertible ``(COMPACT_BITS, COMPACT_BITS)`` 0/1 matrix ``T`` of the compact frame
+    (codeword = ``T frame`` XOR whitening) and its inverse, both read-only."""
+    rng = np.random.default_rng(derive(key, "meshmark-mix"))
+    while True:  # a random square matrix over GF(2) is invertible with probability ~0.29
+        t = rng.integers(0, 2, (COMPACT_BITS, COMPACT_BITS)).astype(np.uint8)
+        inv = gf2.inverse(t)
+        if inv is not None:
+            break
+    t.flags.writeable = False
+    inv.flags.writeable = False
+    return t, inv
+
+
+def compact_whitening(key: str | bytes) -> np.ndarray:
+    """The compact codeword's keyed mask (not the standard one of the same length)."""
+    return whitening(b"meshmark-compact\0" + (key.encode() if isinstance(key, str) else key), COMPACT_BITS)
+
+
+def compact_frame(payload: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The frame of ``payload`` as an affine function of its free bits ``r``:
+    ``frame(r) = f0 XOR F r`` (mod 2).
+
+    Returns
+    -------
+    f0 : (COMPACT_BITS,) uint8 ndarray
+        The frame with every free bit 0.
+    F : (COMPACT_BITS, COMPACT_DATA - n) uint8 ndarray
+        Column ``j``: what setting free bit ``j`` changes (the bit itself and the CRC's share).
+    """
+    n = len(payload)
+    m = COMPACT_DATA - n
+    data = np.concatenate([np.asarray(payload, np.uint8), np.zeros(m, np.uint8)])
+    f0 = np.concatenate([data, compact_crc(n, data)])
+    cols = np.zeros((COMPACT_BITS, m), np.uint8)
+    for j in range(m):  # a CRC is affine in its input: each free bit adds a fixed pattern
+        d = data.copy()
+        d[n + j] = 1
+        cols[:, j] = np.concatenate([d, compact_crc(n, d)]) ^ f0
+    return f0, cols
+
+
+def compact_codeword(key: str | bytes, payload: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The de-whitened compact codeword of ``payload`` as ``b0 XOR D r`` over its free bits ``r``:
+    returns ``(b0, D)``; the embedder's (whitened) codeword is ``b XOR compact_whitening(key)``."""
+    t, _ = compact_mixing(key)
+    f0, cols = compact_frame(payload)
+    return (t.astype(np.int64) @ f0 % 2).astype(np.uint8), (t.astype(np.int64) @ cols % 2).astype(np.uint8)
+
+
+def compact_unmix(key: str | bytes, bits: np.ndarray) -> np.ndarray:
+    """The frame of a de-whitened compact codeword."""
+    _, inv = compact_mixing(key)
+    return (inv.astype(np.int64) @ np.asarray(bits, np.int64) % 2).astype(np.uint8)
+
+
+def compact_lengths(frame: np.ndarray, lengths: list[int]) -> list[int]:
+    """The payload lengths among ``lengths`` whose CRC holds in a compact ``frame``."""
+    data, crc = frame[:COMPACT_DATA], frame[COMPACT_DATA:]
+    return [n for n in lengths if np.array_equal(compact_crc(n, data), crc)]
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,10 @@ import numpy as np
 
 from core.analysis import Analysis
 from core.coding import (
+    COMPACT_BELOW,
+    COMPACT_BITS,
+    COMPACT_BUCKET,
+    COMPACT_MAX_PAYLOAD,
     CRC_BITS,
     KEY_CODE_BITS,
     MAX_PAYLOAD_BITS,
@@ -20,6 +24,10 @@ from core.coding import (
     binomial_tail,
     bits_to_str,
     codeword_length,
+    compact_lengths,
+    compact_mixing,
+    compact_unmix,
+    compact_whitening,
     crc_bits,
     hamming_encode,
     key_code,
@@ -29,7 +37,7 @@ from core.coding import (
     whitening,
 )
 from core.reports import DetectResult
-from core.slots import assign_slots, ranked_by_default
+from core.slots import assign_slots, bucketed_slots, ranked_by_default
 
 #: the key-derived code is accepted with at most this many bit errors out of 32 (P = 7.7e-9)
 KEY_CODE_MAX_ERRORS = 1
@@ -145,6 +153,39 @@ def _posterior(slots: np.ndarray, raw: np.ndarray, sign: np.ndarray, sums: np.nd
     return soft_decode(log_odds(p) * sums), p
 
 
+def compact_slots(slot_hashes: list[np.ndarray]) -> np.ndarray:
+    """Every carrier's slot in the compact frame, all parts together."""
+    out = bucketed_slots(slot_hashes, COMPACT_BITS, COMPACT_BUCKET)
+    return np.concatenate(out) if out else np.zeros(0, np.int64)
+
+
+def _compact_confidence(key: str | bytes, slots: np.ndarray, raw: np.ndarray, sign: np.ndarray,
+                        sums: np.ndarray, bits: np.ndarray) -> tuple[np.ndarray, float]:
+    """Posterior of each compact frame bit and the carrier error rate.
+
+    Each slot's hard decision is right with ``q = 1 / (1 + exp(-|LLR|))`` (LLR as in
+    :func:`_posterior`); a frame bit is the XOR of the slots of its row of the inverse matrix, so it
+    is right with ``(1 + prod(2 q - 1)) / 2`` over those slots (the piling-up lemma, independent
+    slots).  Every frame bit depends on about half the slots, so one doubtful slot makes every bit
+    doubtful: the CRC, not these figures, decides the detection."""
+    L = len(sums)
+    votes = raw * sign[slots]
+    n = np.bincount(slots, minlength=L).astype(np.float64)
+    sq = np.bincount(slots, votes * votes, minlength=L)
+    pairs = float((n * (n - 1)).sum())
+    if pairs >= 50:
+        m = min(np.sqrt(max(float((sums * sums - sq).sum()) / pairs, 0.0)), 1.0)
+        p = (1.0 - m) / 2.0 + 0.5 / (len(slots) + 2.0)
+    else:
+        disagree = float(((1.0 - 2.0 * bits[slots]) * votes < 0).sum())
+        p = (disagree + 1.0) / (len(slots) + 2.0)
+    # an empty slot reads 0 whatever happens to the mesh (the embedder chose the free bits for it)
+    q = np.where(n > 0, 1.0 / (1.0 + np.exp(-np.abs(log_odds(p) * sums))), 1.0)
+    _, inv = compact_mixing(key)
+    logs = inv.astype(np.float64) @ np.log(np.maximum(2.0 * q - 1.0, 1e-300))
+    return np.clip((1.0 + np.exp(logs)) / 2.0, 0.5, 1.0), p
+
+
 #: decoding variants (votes, slot assignment): the embedder's own, then the ones that survive
 #: attacks (global shifts of the statistics; crops that change the carrier count; absolute errors
 #: of every vertex, which the scale-weighted votes read; measurements in core/README.md, section 5)
@@ -170,15 +211,20 @@ def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
     # chance that one random candidate passes: CRC (+ zero padding) or the key-code test
     fp_explicit = sum(2.0 ** -(CRC_BITS + (codeword_length(n) // 7 * 4 - n - CRC_BITS)) for n in lengths)
     fp_key = binomial_tail(KEY_CODE_MAX_ERRORS, KEY_CODE_BITS) if expected is None else 0.0
-    fpp_total = min(1.0, n_tries * (fp_explicit + fp_key))
-    decoders = [_MethodDecoder(method, analyses, key, expected, lengths, n_tries, fpp_total)
+    # the compact frame only where it can have been embedded: few carriers
+    scarce = any(sum(len(a.carriers) for a in analyses) < COMPACT_BELOW for analyses in per_method.values())
+    compact = [n for n in lengths if n <= COMPACT_MAX_PAYLOAD] if scarce else []
+    fp_compact = len(compact) * 2.0**-CRC_BITS  # tried in the first variant only, once per method
+    fpp_total = min(1.0, n_tries * (fp_explicit + fp_key) + len(per_method) * fp_compact)
+    decoders = [_MethodDecoder(method, analyses, key, expected, lengths, n_tries, fpp_total, compact)
                 for method, analyses in per_method.items()]
     # variant by variant across the methods: a method that reads the mark the embedder's way
     # answers before any other is decoded the attack-tolerant ways
     for adaptive, ranked in VARIANTS:
-        # the key-derived code of every method first (one candidate each), then the explicit lengths
-        for key_only in (True, False):
-            found = [hit for d in decoders if (hit := d.try_variant(adaptive, ranked, key_only)) is not None]
+        # the key-derived code of every method first (one candidate each), then the explicit
+        # lengths, then the compact frame
+        for frame in ("key", "explicit", "compact"):
+            found = [hit for d in decoders if (hit := d.try_variant(adaptive, ranked, frame)) is not None]
             if found:
                 return min(found, key=lambda item: item[0])[1]
     # informed detection accepted by its p-value but without an exact CRC match
@@ -203,8 +249,9 @@ class _MethodDecoder:
     """Candidates of one method, decoded one variant at a time (slots and votes cached)."""
 
     def __init__(self, method: str, analyses: list[Analysis], key: str | bytes, expected: np.ndarray | None,
-                 lengths: list[int], n_tries: int, fpp_total: float) -> None:
+                 lengths: list[int], n_tries: int, fpp_total: float, compact: list[int]) -> None:
         self.method, self.analyses, self.key, self.expected = method, analyses, key, expected
+        self.compact = compact
         self.n_tries, self.fpp_total = n_tries, fpp_total
         self.code = key_code(key)
         self.by_L: dict[int, list[int]] = {}
@@ -218,12 +265,48 @@ class _MethodDecoder:
         self.values = {mode: _soft_values(analyses, mode) for mode in (HARD, ADAPTIVE, SCALED)}
         self.cache: dict = {}
 
-    def try_variant(self, adaptive: int, ranked: bool | None, key_code_only: bool
+    def try_variant(self, adaptive: int, ranked: bool | None, frame: str
                     ) -> tuple[float, DetectResult] | None:
         """The first successful candidate of this variant, with its carrier error rate: the
-        key-derived code (``key_code_only``: the paper's default mode, one candidate) or else the
-        explicit payload lengths."""
-        return self._key_code(adaptive, ranked) if key_code_only else self._explicit(adaptive, ranked)
+        key-derived code (``frame="key"``: the paper's default mode, one candidate), the explicit
+        payload lengths (``"explicit"``) or the compact frame's (``"compact"``)."""
+        if frame == "key":
+            return self._key_code(adaptive, ranked)
+        return self._explicit(adaptive, ranked) if frame == "explicit" else self._compact(adaptive, ranked)
+
+    def _compact(self, adaptive: int, ranked: bool | None) -> tuple[float, DetectResult] | None:
+        """The compact frame: hard decision per slot, the keyed matrix inverted, the CRC of every
+        length up to :data:`~core.coding.COMPACT_MAX_PAYLOAD` checked (no error correction)."""
+        analyses, L = self.analyses, COMPACT_BITS
+        if not self.compact or adaptive != HARD or ranked is not None:
+            # the embedder's own reading only: without error correction the frame does not survive
+            # what the other variants are for, and each variant tried would add to the false positives
+            return None
+        if "compact" not in self.cache:
+            self.cache["compact"] = compact_slots([a.slot_hash for a in analyses])
+        slots = self.cache["compact"]
+        if not len(slots):
+            return None
+        _, raw, _ = _votes(analyses, self.values[adaptive], self.key, L, None, self.cache)
+        sign = 1.0 - 2.0 * compact_whitening(self.key)
+        sums = np.bincount(slots, raw, minlength=L) * sign
+        bits = (sums < 0).astype(np.uint8)
+        frame = compact_unmix(self.key, bits)
+        for n in compact_lengths(frame, self.compact):
+            payload = frame[:n]
+            errors = None
+            if self.expected is not None:
+                errors = int((payload != self.expected).sum())
+                if errors:
+                    continue
+            conf, p_err = _compact_confidence(self.key, slots, raw, sign, sums, bits)
+            return p_err, DetectResult(
+                detected=True, payload=bits_to_str(payload),
+                bit_confidence=[round(float(c), 6) for c in conf[:n]],
+                false_positive_probability=self.fpp_total, copies=round(self.carriers / L, 3),
+                carriers=self.carriers, crc_ok=True, method=self.method, key_derived=False,
+                bit_errors=errors, p_value=None if errors is None else binomial_tail(0, n), parts=self.parts)
+        return None
 
     def _key_code(self, adaptive: int, ranked: bool | None) -> tuple[float, DetectResult] | None:
         analyses, carriers = self.analyses, self.carriers

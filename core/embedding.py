@@ -22,6 +22,8 @@ from core.tolerances import TOL, Tolerances
 #: what storing positions in the file does to them (float32, printed decimals)
 #: ``quantize(mesh, vertex_indices, positions)``: what storing those vertices of that mesh gives
 Quantize = Callable[[int, np.ndarray, np.ndarray], np.ndarray]
+#: ``slot_rule(slot_hashes, length)``: the codeword slot of every carrier of every part
+SlotRule = Callable[[list[np.ndarray], int], list[np.ndarray]]
 
 
 def target_positions(method: str, a: Analysis, v: np.ndarray, bits: np.ndarray, margin: float,
@@ -132,7 +134,8 @@ class EmbedStats:
 def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | bytes, codeword: np.ndarray,
                 method: str, strength: float, quantize: Quantize | None = None, tol: Tolerances = TOL,
                 prepared: list[tuple[Adjacency, Labels]] | None = None, rms_budget: float | None = None,
-                diagonal: float | None = None) -> tuple[list[np.ndarray], list[EmbedStats], list[Analysis]]:
+                diagonal: float | None = None, slot_rule: SlotRule | None = None
+                ) -> tuple[list[np.ndarray], list[EmbedStats], list[Analysis]]:
     """Move carriers of one or several meshes so that the detector reads ``codeword``.
 
     Parameters
@@ -159,6 +162,9 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
         The bounding-box diagonal the displacement ceiling and the RMS budget refer to: the
         file's, so that a small part of a scene is not held to its own size (default: each
         mesh's own).
+    slot_rule : callable, optional
+        The slots of the carriers (default: :func:`~core.slots.assign_slots`, ranked or hashed by
+        the carrier count); the compact frame's are :func:`~core.slots.bucketed_slots`.
 
     Returns
     -------
@@ -196,7 +202,8 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
     ranked = ranked_by_default(sum(carriers), L)
     rounds = [0] * len(meshes)
     for r in range(1, tol.verify_rounds + 1):
-        slots = assign_slots([a.slot_hash for a in an], L, ranked)
+        hashes = [a.slot_hash for a in an]
+        slots = assign_slots(hashes, L, ranked) if slot_rule is None else slot_rule(hashes, L)
         margin = strength if r == 1 else 0.5 * strength
         any_bad = False
         for k, a in enumerate(an):

@@ -2,24 +2,37 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 import numpy as np
 
+from core import gf2
 from core.analysis import Analysis, analyse_methods, prepare
-from core.coding import KEY_CODE_BITS, MAX_PAYLOAD_BITS, codeword_length, encode
-from core.detection import detect_analyses
+from core.coding import (
+    COMPACT_BELOW,
+    COMPACT_BITS,
+    COMPACT_BUCKET,
+    COMPACT_MAX_PAYLOAD,
+    KEY_CODE_BITS,
+    MAX_PAYLOAD_BITS,
+    codeword_length,
+    compact_codeword,
+    compact_whitening,
+    encode,
+)
+from core.detection import compact_slots, detect_analyses
 from core.embedding import EmbedStats, Quantize, embed_parts
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, FORMATS, Limits, MeshDocument, MeshPart, read_mesh, weld
+from core.hashing import derive
 from core.mesh import Adjacency, bbox_diagonal
 from core.options import DEFAULT_METHOD, METHODS, Options
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
 from core.resample import undo_subdivision
-from core.slots import own_copy
-from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE
-from core.tolerances import TOL
+from core.slots import bucketed_slots, own_copy
+from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, Labels
+from core.tolerances import TOL, Tolerances
 
 #: carriers per codeword bit that capacity asks for (skipped carriers and slot collisions)
 CAPACITY_MARGIN = 1.5
@@ -299,7 +312,10 @@ def embed_file(data: bytes, key: str | bytes, *, filename: str | None = None, pa
 
 def _embed_doc(doc: MeshDocument, options: Options, report: Progress,
                probe: bool = True) -> tuple[list[np.ndarray], EmbedReport, int | None]:
-    """Embed into every usable part; ``probe``: a refusal says what would fit instead."""
+    """Embed into every usable part; ``probe``: a refusal says what would fit instead.
+
+    The standard frame first; a payload of at most :data:`~core.coding.COMPACT_MAX_PAYLOAD` bits
+    that it cannot carry on a mesh of few carriers gets the compact frame (:func:`_embed_compact`)."""
     key = options.secret
     method, s, bits = options.embed_method, options.margin, options.payload_bits
     parts = _usable_parts(doc)
@@ -323,9 +339,10 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress,
     def attempt_start(k: int) -> float:
         return Milestones.MOVED + span * (1 - 0.5**k)
 
+    refusal: tuple[str, int] | None = None
+    too_few = False  # too few carriers for the codeword: no embedding was tried, nothing else is
     for attempt, (budget, factor, dec) in enumerate(tries):
-        tol = replace(TOL, coarse_move=TOL.coarse_move * factor, max_local_move=TOL.max_local_move * factor,
-                      max_move=TOL.max_move * factor)
+        tol = _capped(factor)
         vs, stats, final = embed_parts(meshes, key, codeword, method, s, tol=tol, prepared=prepared,
                                        quantize=_part_quantizer(doc, parts, dec), rms_budget=budget,
                                        diagonal=diagonal)
@@ -334,30 +351,40 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress,
         skipped = sum(st.skipped for st in stats)
         report(attempt_start(attempt))
         if carriers < L:
-            raise CapacityError(
-                f"too little capacity: {carriers} carriers for a {L}-bit codeword "
-                f"({'32-bit key-derived code' if bits is None else f'{len(bits)}-bit payload'} with "
-                f"{'' if bits is None else 'CRC-32 and '}Hamming(7,4)) at strength {s}"
-                + (_no_carrier_hint(carriers) or _more_carriers_hint(bits)),
-                carriers=carriers, needed=L)
-        # the embedder's last analysis is the detector's view of the stego mesh, and so is every
-        # part with room for a copy of its own (a mesh extracted from the file)
-        groups = [final] + [[a] for a in final if len(final) > 1 and own_copy(a.slot_hash, L)]
+            too_few = True
+            refusal = (f"too little capacity: {carriers} carriers for a {L}-bit codeword "
+                       f"({'32-bit key-derived code' if bits is None else f'{len(bits)}-bit payload'} with "
+                       f"{'' if bits is None else 'CRC-32 and '}Hamming(7,4)) at strength {s}"
+                       + (_no_carrier_hint(carriers) or _more_carriers_hint(bits)), carriers)
+            break
         verify = _scaled(report, attempt_start(attempt), attempt_start(attempt + 1))
         ok = budget is None or skipped <= MAX_BUDGET_SKIP * carriers
-        for k, group in enumerate(groups if ok else []):
-            ok = _reads_back(detect_analyses({method: group}, key, bits), bits)
-            verify((k + 1) / len(groups))
-            if not ok:
-                break
-        if ok or attempt == len(tries) - 1:
+        if ok and _verified(final, key, method, bits, L, verify):
             break
+        if attempt == len(tries) - 1:
+            refusal = ("the watermark could not be made readable on this mesh within the displacement "
+                       f"ceiling of {TOL.max_displacement:g} of the bounding-box diagonal ({carriers} "
+                       f"carriers, {skipped} of them over it, at strength {s:g} with {method})", carriers)
     report(Milestones.VERIFIED)
-    if not ok:
-        raise CapacityError("the watermark could not be made readable on this mesh within the displacement "
-                            f"ceiling of {TOL.max_displacement:g} of the bounding-box diagonal ({carriers} "
-                            f"carriers, {skipped} of them over it, at strength {s:g} with {method})"
-                            + (_what_fits(doc, options) if probe else ""), carriers=carriers, needed=L)
+    if refusal is not None:
+        compact = None
+        fallback = bits is not None and len(bits) <= COMPACT_MAX_PAYLOAD and refusal[1] < COMPACT_BELOW
+        if fallback:
+            assert bits is not None
+            compact = _embed_compact(meshes, prepared, key, method, s, bits, diagonal,
+                                     [(f, d) for f in CAP_FACTORS for d in decs[:1]]
+                                     + [(CAP_FACTORS[-1], d) for d in decs[1:]],
+                                     lambda dec: _part_quantizer(doc, parts, dec))
+        if compact is None:
+            tried = (f"; the compact {COMPACT_BITS}-bit frame (CRC-32, no Hamming) did not read back either"
+                     if fallback else "")
+            hint = _what_fits(doc, options) if probe and (fallback or not too_few) else ""
+            raise CapacityError(refusal[0] + tried + hint,
+                                carriers=refusal[1], needed=L)
+        vs, stats, factor, dec = compact
+        new, L = _with_parts(doc, parts, vs), COMPACT_BITS
+        carriers = sum(st.carriers for st in stats)
+        skipped = sum(st.skipped for st in stats)
     moved, rms, mx, haus = _distortion(doc, new, {i: prepared[k][0] for k, i in enumerate(parts)})
     report(Milestones.MEASURED)
     rep = EmbedReport(method=method, strength=s, payload_bits=KEY_CODE_BITS if bits is None else len(bits),
@@ -366,6 +393,137 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress,
                       rms_displacement=rms, max_displacement=mx, hausdorff=haus, decimals=dec,
                       cap_factor=factor, parts=_part_info(doc, parts, stats))
     return new, rep, dec
+
+
+def _capped(factor: float) -> Tolerances:
+    """The tolerances with the default displacement caps times ``factor`` (the ceiling stays)."""
+    return replace(TOL, coarse_move=TOL.coarse_move * factor, max_local_move=TOL.max_local_move * factor,
+                   max_move=TOL.max_move * factor)
+
+
+def _verified(final: list[Analysis], key: str | bytes, method: str, bits: np.ndarray | None, L: int,
+              verify: Progress = _no_progress) -> bool:
+    """The embedder's last analysis reads the payload back, and so does every part with room for a
+    copy of its own (a mesh extracted from the file)."""
+    groups = [final] + [[a] for a in final if len(final) > 1 and own_copy(a.slot_hash, L)]
+    for k, group in enumerate(groups):
+        if not _reads_back(detect_analyses({method: group}, key, bits), bits):
+            return False
+        verify((k + 1) / len(groups))
+    return True
+
+
+#: embeddings of the compact frame per displacement cap, each with the constraints of the last slot maps
+COMPACT_ROUNDS = 64
+#: slot maps (of the last embeddings) whose constraints a compact codeword meets together
+COMPACT_MAPS = 3
+#: a slot is held to one value unless its free carriers can outvote the others by this much
+COMPACT_VOTE_MARGIN = 0.5
+
+
+def compact_rule(slot_hashes: list[np.ndarray], length: int) -> list[np.ndarray]:
+    """The compact frame's slot assignment, as :func:`~core.embedding.embed_parts` takes it."""
+    return bucketed_slots(slot_hashes, length, COMPACT_BUCKET)
+
+
+def _embed_compact(meshes: list[tuple[np.ndarray, np.ndarray]], prepared: list[tuple[Adjacency, Labels]],
+                   key: str | bytes, method: str, s: float, bits: np.ndarray, diagonal: float,
+                   tries: list[tuple[float, int | None]], quantizer: Callable[[int | None], Quantize]
+                   ) -> tuple[list[np.ndarray], list[EmbedStats], float, int | None] | None:
+    """Embed ``bits`` in the compact frame, choosing its free bits (a wet-paper code).
+
+    Two probe embeddings ask every carrier for 0, then for 1: a carrier that does not read one of
+    them is *wet* for it, and a slot whose wet carriers outvote the others can only read one value.
+    Those values are linear constraints on the free bits (the codeword is ``b0 XOR D r``); a
+    solution (the free unknowns drawn from a keyed generator) is embedded and verified.  On a
+    regular mesh the carriers, and with the ranked assignment every later slot, shift a little with
+    each embedding, so a failed round solves again with the slots of the last analysis, together
+    with those of up to :data:`COMPACT_MAPS` earlier ones while the system stays solvable, up to
+    :data:`COMPACT_ROUNDS` times.  ``tries``: (cap factor, decimals) in turn; a try whose probes
+    read exactly as an earlier one's (the ceiling, not the cap, limits every move) is skipped.
+    ``None`` when no try reads back."""
+    L = COMPACT_BITS
+    b0, d = compact_codeword(key, bits)
+    white = compact_whitening(key)
+    d64 = d.astype(np.int64)
+    rng = np.random.default_rng(derive(key, "meshmark-wet"))
+    seen: list[list[np.ndarray]] = []
+    for factor, dec in tries:
+        tol, quantize = _capped(factor), quantizer(dec)
+
+        def run(cw: np.ndarray, tol: Tolerances = tol, quantize: Quantize = quantize
+                ) -> tuple[list[np.ndarray], list[EmbedStats], list[Analysis]]:
+            return embed_parts(meshes, key, cw, method, s, tol=tol, prepared=prepared, quantize=quantize,
+                               diagonal=diagonal, slot_rule=compact_rule)
+
+        # reach[v][k]: per vertex of mesh k, whether it reads raw bit v when asked (True where unknown)
+        reach: list[list[np.ndarray]] = []
+        for value in (0, 1):
+            _, _, an = run(np.full(L, value, np.uint8))
+            ok = [np.ones(len(v), bool) for v, _ in meshes]
+            for k, a in enumerate(an):
+                ok[k][a.carriers] = (a.z > 0) if value == 0 else (a.z < 0)
+            reach.append(ok)
+        probes = [r.copy() for ok in reach for r in ok]
+        probed = [[r.copy() for r in ok] for ok in reach]
+        if any(len(p) == len(probes) and all(np.array_equal(a, b) for a, b in zip(p, probes, strict=True))
+               for p in seen):
+            continue
+        seen.append(probes)
+        held: list[np.ndarray] = []  # the constraints of the slot maps seen so far, latest first
+        mean: float | None = None
+        for _ in range(COMPACT_ROUNDS):
+            slots = compact_slots([a.slot_hash for a in an])
+            can0 = np.concatenate([reach[0][k][a.carriers] for k, a in enumerate(an)])
+            can1 = np.concatenate([reach[1][k][a.carriers] for k, a in enumerate(an)])
+            dry = np.bincount(slots, can0 & can1, minlength=L)
+            only0 = np.bincount(slots, can0 & ~can1, minlength=L)
+            only1 = np.bincount(slots, can1 & ~can0, minlength=L)
+            count = np.bincount(slots, minlength=L)
+            # the detector centres the votes on their mean, which the wet carriers bias (most of a
+            # coarse mesh's may sit inside their ellipsoids): a slot reads 0 when its vote sum
+            # beats count x mean.  The mean of the last embedding, else the probes' estimate
+            if mean is None:
+                mean = float((can0 & ~can1).sum() - (can1 & ~can0).sum()) / max(len(slots), 1)
+            best0 = dry + only0 - only1 - count * mean
+            best1 = dry + only1 - only0 + count * mean
+            ok0, ok1 = best0 > COMPACT_VOTE_MARGIN, best1 > COMPACT_VOTE_MARGIN
+            # the whitened bit a slot is held to (-1: free); an empty slot reads 0 once de-whitened
+            forced = np.where(ok0 & ~ok1, 0, np.where(ok1 & ~ok0, 1, -1))
+            forced = np.where(~ok0 & ~ok1, np.where(best0 >= best1, 0, 1), forced)
+            forced = np.where(count == 0, white.astype(np.int64), forced)
+            held.insert(0, forced)
+            r = None
+            # the carriers and slots shift a little with every embedding (regular meshes): meet the
+            # last few slot maps at once when they agree, else fewer
+            for depth in range(min(len(held), COMPACT_MAPS), 0, -1):
+                stack = np.concatenate(held[:depth])
+                rows = np.flatnonzero(stack >= 0)
+                dd = np.concatenate([d] * depth)
+                bb = np.concatenate([white ^ b0] * depth)
+                r = gf2.solve(dd[rows], stack[rows].astype(np.uint8) ^ bb[rows],
+                              np.asarray(rng.integers(0, 2, size=d.shape[1], dtype=np.uint8)))
+                if r is not None:
+                    break
+            if r is None:
+                if not held[1:]:
+                    break  # the probes alone already ask too much
+                # what the rounds learnt is too much to meet at once: start again from the probes
+                reach, held, mean = [[r.copy() for r in ok] for ok in probed], [], None
+                continue
+            cw = b0 ^ (d64 @ r % 2).astype(np.uint8) ^ white
+            vs, stats, an = run(cw)
+            if _verified(an, key, method, bits, L):
+                return vs, stats, factor, dec
+            votes = np.concatenate([np.where(a.z > 0, 1.0, -1.0) for a in an])
+            mean = float(votes.mean()) if votes.size else 0.0
+            # a carrier that did not read what its slot asked is wet for that value
+            for k, (a, slot) in enumerate(zip(an, compact_rule([a.slot_hash for a in an], L), strict=True)):
+                want = cw[slot]
+                miss = (a.z > 0) != (want == 0)
+                for value in (0, 1):
+                    reach[value][k][a.carriers[miss & (want == value)]] = False
+    return None
 
 
 #: lower strengths a refusal tries (fewer carriers over the ceiling, less margin against attacks)
@@ -507,6 +665,8 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
         info.append({"name": doc.parts[i].name, "vertices": len(doc.parts[i].vertices),
                      "carriers": stats[k].carriers})
     max_bits = _largest_payload(carriers / CAPACITY_MARGIN)
+    if carriers < COMPACT_BELOW:
+        max_bits = max(max_bits, COMPACT_MAX_PAYLOAD)  # the compact frame's, when it embeds
     if carriers < CAPACITY_SURE * codeword_length(max_bits or None):
         max_bits = _verified_payload(doc, replace(options, key=key), max_bits)
     report(Milestones.VERIFIED)
@@ -521,10 +681,12 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
 
 #: payload lengths capacity verifies, longest first, below the carrier-count bound
 CAPACITY_LADDER = (256, 192, 128, 96, 64, 48, 32, 24, 16, 12, 8, 4, 2, 1)
-#: random payloads of a length that must all embed for capacity to offer it
-CAPACITY_TRIALS = 4
+#: random payloads of a length that must all embed for capacity to offer it (whether a payload fits
+#: at the edge depends on its bits: with 4, bench capacity-keys still found 5-8 % of the payloads of
+#: the offered lengths refused on the Duck and Spot, and compact lengths refused on the Sink)
+CAPACITY_TRIALS = 8
 #: copies of the codeword from which capacity trusts the carrier count without embedding (a 1M
-#: mesh has ~450 copies of the longest codeword; four trial embeddings would take ~6 s there)
+#: mesh has ~450 copies of the longest codeword; eight trial embeddings would take ~12 s there)
 CAPACITY_SURE = 8
 
 

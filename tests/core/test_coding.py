@@ -60,3 +60,32 @@ def test_tail_probabilities_and_log_odds() -> None:
     assert [coding.binomial_tail(k, 2) for k in (0, 1, 2)] == [0.25, 0.75, 1.0]
     assert coding.binomial_tail(1, 32) == pytest.approx(33 / 2**32)
     assert coding.log_odds(0.5) == 0.0 and coding.log_odds(0.0) == coding.log_odds(1e-6) > 0
+
+
+def test_the_compact_frame_carries_its_payload_whatever_the_free_bits() -> None:
+    """Any choice of the free bits gives a codeword that reads back as the payload, with the CRC
+    holding for its own length only; the keyed matrix is invertible."""
+    from core.coding import (
+        COMPACT_BITS,
+        COMPACT_DATA,
+        compact_codeword,
+        compact_lengths,
+        compact_mixing,
+        compact_unmix,
+    )
+
+    t, inv = compact_mixing("compact key")
+    assert np.array_equal(t.astype(np.int64) @ inv % 2, np.eye(COMPACT_BITS, dtype=np.int64))
+    rng = np.random.default_rng(3)
+    for n in (1, 17, 32, 48):
+        payload = rng.integers(0, 2, n).astype(np.uint8)
+        b0, d = compact_codeword("compact key", payload)
+        assert d.shape == (COMPACT_BITS, COMPACT_DATA - n)
+        for _ in range(3):
+            r = rng.integers(0, 2, d.shape[1])
+            frame = compact_unmix("compact key", b0 ^ (d.astype(np.int64) @ r % 2).astype(np.uint8))
+            assert np.array_equal(frame[:n], payload) and np.array_equal(frame[n:COMPACT_DATA], r)
+            assert compact_lengths(frame, list(range(1, 49))) == [n]
+        # another key reads something else
+        other = compact_unmix("another key", b0)
+        assert compact_lengths(other, list(range(1, 49))) == []

@@ -117,3 +117,38 @@ def test_scaled_votes_are_bounded_and_weighted() -> None:
     assert v[1] == pytest.approx(4 * v[0]) and v[3] == pytest.approx(4 * v[2])
     (plain,) = _soft_values([a], ADAPTIVE)
     assert plain[1] == pytest.approx(plain[0])
+
+
+def compact_carriers(payload: np.ndarray, k: int, seed: int) -> Analysis:
+    """``k`` carriers whose statistics read ``payload`` in the compact frame: the free bits make
+    the empty slots (which read 0) agree, as the embedder's constraints do."""
+    from core import gf2
+    from core.coding import COMPACT_BITS, COMPACT_BUCKET, compact_codeword, compact_whitening
+    from core.slots import bucketed_slots
+
+    rng = np.random.default_rng(seed)
+    hashes = rng.integers(0, 2**64 - 1, k, dtype=np.uint64, endpoint=True)
+    slots = bucketed_slots([hashes], COMPACT_BITS, COMPACT_BUCKET)[0]
+    b0, d = compact_codeword(KEY, payload)
+    empty_slots = np.flatnonzero(np.bincount(slots, minlength=COMPACT_BITS) == 0)
+    free = gf2.solve(d[empty_slots], b0[empty_slots], rng.integers(0, 2, d.shape[1]).astype(np.uint8))
+    assert free is not None
+    word = b0 ^ (d.astype(np.int64) @ free % 2).astype(np.uint8) ^ compact_whitening(KEY)
+    z = np.where(word[slots] == 0, 1.0, -1.0) * rng.uniform(0.05, 0.2, k)
+    empty = np.zeros((k, 3))
+    return Analysis(np.arange(k), hashes, z, empty, np.zeros((k, 3, 3)), empty, np.ones(k), False)
+
+
+def test_the_compact_frame_is_found_below_1024_carriers_and_counted_in_the_false_positives() -> None:
+    payload = np.random.default_rng(5).integers(0, 2, 32).astype(np.uint8)
+    found = detect_analyses({"planes": [compact_carriers(payload, 120, 1)]}, KEY)
+    assert found.detected and found.crc_ok and found.payload == "".join(map(str, payload))
+    assert len(found.bit_confidence) == 32 and min(found.bit_confidence) > 0.5
+    # one method: 5 variants x (256 standard lengths + key code) + 48 compact lengths, ~2^-32 each
+    assert found.false_positive_probability == pytest.approx(1.893e-7, rel=1e-3)
+    checked = detect_analyses({"planes": [compact_carriers(payload, 120, 1)]}, KEY, payload)
+    assert checked.detected and checked.bit_errors == 0
+    # a wrong key reads nothing; many carriers: the compact frame is not tried (nor counted)
+    assert not detect_analyses({"planes": [compact_carriers(payload, 120, 1)]}, "another key").detected
+    many = detect_analyses({"planes": [carriers_reading(encode(KEY, payload), 1100, 4)]}, KEY)
+    assert many.detected and many.false_positive_probability == pytest.approx(1.781e-7, rel=1e-3)

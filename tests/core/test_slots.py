@@ -47,3 +47,19 @@ def test_a_cache_serves_every_length() -> None:
     for length in (2, 3, 5):
         assert np.array_equal(assign_slots(hashes, length, True, cache)[0],
                               assign_slots(hashes, length, True)[0])
+
+
+def test_bucketed_slots_move_only_within_the_bucket_of_a_carrier_that_comes_or_goes() -> None:
+    from core.slots import bucketed_slots
+
+    rng = np.random.default_rng(11)
+    h = rng.integers(0, 2**64 - 1, 120, dtype=np.uint64, endpoint=True)  # keyed hashes use all 64 bits
+    (full,) = bucketed_slots([h], 128, 8)
+    assert full.min() >= 0 and full.max() < 128
+    assert np.unique(full).size >= 0.75 * 120  # buckets fill unevenly, but most slots are used
+    (fewer,) = bucketed_slots([h[1:]], 128, 8)
+    moved = np.flatnonzero(full[1:] != fewer)
+    assert moved.size and set(full[1:][moved] // 8) == {full[0] // 8}
+    # parts are ranked together: splitting the array changes nothing
+    a, b = bucketed_slots([h[:50], h[50:]], 128, 8)
+    assert np.array_equal(np.concatenate([a, b]), full)
