@@ -310,8 +310,8 @@ def embed_file(data: bytes, key: str | bytes, *, filename: str | None = None, pa
     return embed(data, options, filename=filename, limits=limits or DEFAULT_LIMITS, progress=progress)
 
 
-def _embed_doc(doc: MeshDocument, options: Options, report: Progress,
-               probe: bool = True) -> tuple[list[np.ndarray], EmbedReport, int | None]:
+def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: bool = True,
+               compact_rounds: int | None = None) -> tuple[list[np.ndarray], EmbedReport, int | None]:
     """Embed into every usable part; ``probe``: a refusal says what would fit instead.
 
     The standard frame first; a payload of at most :data:`~core.coding.COMPACT_MAX_PAYLOAD` bits
@@ -374,7 +374,8 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress,
             compact = _embed_compact(meshes, prepared, key, method, s, bits, diagonal,
                                      [(f, d) for f in CAP_FACTORS for d in decs[:1]]
                                      + [(CAP_FACTORS[-1], d) for d in decs[1:]],
-                                     lambda dec: _part_quantizer(doc, parts, dec))
+                                     lambda dec: _part_quantizer(doc, parts, dec),
+                                     COMPACT_ROUNDS if compact_rounds is None else compact_rounds)
         if compact is None:
             tried = (f"; the compact {COMPACT_BITS}-bit frame (CRC-32, no Hamming) did not read back either"
                      if fallback else "")
@@ -428,8 +429,8 @@ def compact_rule(slot_hashes: list[np.ndarray], length: int) -> list[np.ndarray]
 
 def _embed_compact(meshes: list[tuple[np.ndarray, np.ndarray]], prepared: list[tuple[Adjacency, Labels]],
                    key: str | bytes, method: str, s: float, bits: np.ndarray, diagonal: float,
-                   tries: list[tuple[float, int | None]], quantizer: Callable[[int | None], Quantize]
-                   ) -> tuple[list[np.ndarray], list[EmbedStats], float, int | None] | None:
+                   tries: list[tuple[float, int | None]], quantizer: Callable[[int | None], Quantize],
+                   rounds: int = 64) -> tuple[list[np.ndarray], list[EmbedStats], float, int | None] | None:
     """Embed ``bits`` in the compact frame, choosing its free bits (a wet-paper code).
 
     Two probe embeddings ask every carrier for 0, then for 1: a carrier that does not read one of
@@ -439,7 +440,7 @@ def _embed_compact(meshes: list[tuple[np.ndarray, np.ndarray]], prepared: list[t
     regular mesh the carriers, and with the ranked assignment every later slot, shift a little with
     each embedding, so a failed round solves again with the slots of the last analysis, together
     with those of up to :data:`COMPACT_MAPS` earlier ones while the system stays solvable, up to
-    :data:`COMPACT_ROUNDS` times.  ``tries``: (cap factor, decimals) in turn; a try whose probes
+    ``rounds`` (:data:`COMPACT_ROUNDS`) times.  ``tries``: (cap factor, decimals) in turn; a try whose probes
     read exactly as an earlier one's (the ceiling, not the cap, limits every move) is skipped.
     ``None`` when no try reads back."""
     L = COMPACT_BITS
@@ -472,7 +473,7 @@ def _embed_compact(meshes: list[tuple[np.ndarray, np.ndarray]], prepared: list[t
         seen.append(probes)
         held: list[np.ndarray] = []  # the constraints of the slot maps seen so far, latest first
         mean: float | None = None
-        for _ in range(COMPACT_ROUNDS):
+        for _ in range(rounds):
             slots = compact_slots([a.slot_hash for a in an])
             can0 = np.concatenate([reach[0][k][a.carriers] for k, a in enumerate(an)])
             can1 = np.concatenate([reach[1][k][a.carriers] for k, a in enumerate(an)])
@@ -548,9 +549,9 @@ def _what_fits(doc: MeshDocument, options: Options) -> str:
     return "; no shorter payload, other method or lower strength reads back either: use a finer mesh"
 
 
-def _embeds(doc: MeshDocument, options: Options) -> bool:
+def _embeds(doc: MeshDocument, options: Options, compact_rounds: int | None = None) -> bool:
     try:
-        _embed_doc(doc, options, _no_progress, probe=False)
+        _embed_doc(doc, options, _no_progress, probe=False, compact_rounds=compact_rounds)
     except CapacityError:
         return False
     return True
@@ -688,6 +689,10 @@ CAPACITY_TRIALS = 8
 #: copies of the codeword from which capacity trusts the carrier count without embedding (a 1M
 #: mesh has ~450 copies of the longest codeword; eight trial embeddings would take ~12 s there)
 CAPACITY_SURE = 8
+#: compact-frame rounds of capacity's trial embeddings (a real embedding has COMPACT_ROUNDS): fewer
+#: rounds can only refuse more, so capacity never offers more than embeds, and a trial that fails
+#: costs a quarter (a capacity call on the Sink with ellipsoids took up to 127 s with 64)
+CAPACITY_COMPACT_ROUNDS = 16
 
 
 def _verified_payload(doc: MeshDocument, options: Options, bound: int) -> int:
@@ -699,7 +704,7 @@ def _verified_payload(doc: MeshDocument, options: Options, bound: int) -> int:
         if n <= 0:
             break
         payloads = ["".join(map(str, rng.integers(0, 2, n))) for _ in range(CAPACITY_TRIALS)]
-        if all(_embeds(doc, replace(options, payload=p)) for p in payloads):
+        if all(_embeds(doc, replace(options, payload=p), CAPACITY_COMPACT_ROUNDS) for p in payloads):
             return n
     return 0
 
