@@ -22,7 +22,7 @@ from pathlib import Path
 
 from bench.common import DEFAULT_OUT, engine_ready, meshes_dir
 
-SUITES = ("robustness", "paper", "false-positives", "speed", "summary", "all", "meshbench")
+SUITES = ("robustness", "paper", "false-positives", "speed", "summary", "all")
 ALL = ("robustness", "paper", "false-positives", "speed")
 
 
@@ -80,10 +80,15 @@ def parser() -> argparse.ArgumentParser:
         "speed": "embed/detect/capacity time and memory at 10k/100k/1M vertices",
         "summary": "bench/results/summary.md from the latest results",
         "all": "every suite, then the summary",
-        "meshbench": "MeshBench's attacks and levels: raw BER beside the published Cho and Wang figures",
     }
     for s in SUITES:
         sub.add_parser(s, parents=[common], help=helps[s])
+    mb = sub.add_parser("meshbench", parents=[common],
+                        help="MeshBench's attacks and levels: raw BER beside the published Cho and Wang "
+                        "figures")
+    mb.add_argument("--msdm2-cli", metavar="PATH",
+                    help="build of bench/msdm2/msdm2_cli.cpp (MEPP2's MSDM2) for the perceptual score "
+                    "(default: $MESHMARK_MSDM2_CLI; without it MSDM2 is reported as not computed)")
     # mesh-format suites (issue 2): core.formats only, not part of "all"
     sub.add_parser("formats", parents=[common], help="core.formats read/write speed and memory vs trimesh")
     fz = sub.add_parser(
