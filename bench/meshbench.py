@@ -106,8 +106,11 @@ def msdm2(cli: str, va: np.ndarray, fa: np.ndarray, vb: np.ndarray, fb: np.ndarr
         _write_off(pb, vb, fb)
         values = []
         for orig, degraded in ((pa, pb), (pb, pa)):
-            p = subprocess.run([cli, str(orig), str(degraded), "3"], capture_output=True, text=True,
-                               timeout=timeout)
+            try:
+                p = subprocess.run([cli, str(orig), str(degraded), "3"], capture_output=True, text=True,
+                                   timeout=timeout)
+            except (OSError, subprocess.SubprocessError) as e:
+                return {"error": f"{type(e).__name__}: {e}"[:200]}
             line = [x for x in p.stdout.splitlines() if x.startswith("MSDM2 ")]
             if p.returncode != 0 or not line:
                 return {"error": (p.stderr.strip().splitlines() or [f"exit {p.returncode}"])[-1][:200]}
