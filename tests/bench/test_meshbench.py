@@ -85,3 +85,6 @@ def test_msdm2_reference_implementation():
     strong = meshbench.msdm2(cli, v, f, A.uniform_noise(v, f, 0.02, np.random.default_rng(1))[0], f)
     assert 0 < weak["msdm2"] < strong["msdm2"] <= 1
     assert {"a_to_b", "b_to_a", "seconds"} <= set(weak)
+    # an unreferenced vertex (not on the surface) changes nothing (MEPP2 alone crashes on one)
+    lonely = np.vstack([v, [[5.0, 5.0, 5.0]]])
+    assert meshbench.msdm2(cli, lonely, f, lonely, f)["msdm2"] < 1e-9
