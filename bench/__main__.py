@@ -1,5 +1,8 @@
 """``python -m bench <suite>``: robustness, paper, false-positives, speed, summary, or all.
 
+``meshbench`` (issue 14) runs MeshBench's attack grid on its five closest shared meshes and puts the
+published Cho and Wang figures beside ours (``meshbench.md``); not part of ``all``.
+
 ``formats`` and ``fuzz-formats`` (core.formats speed and fuzzing, issue 2) write ``formats.md``.
 ``pipelines`` (issue 13) runs gltfpack and glTF-Transform on marked GLBs (``pipelines.md``).
 ``identical --write FILE`` / ``--check FILE`` fingerprints every engine answer on the shared meshes
@@ -20,6 +23,7 @@ from pathlib import Path
 from bench.common import DEFAULT_OUT, engine_ready, meshes_dir
 
 SUITES = ("robustness", "paper", "false-positives", "speed", "summary", "all")
+ALL = ("robustness", "paper", "false-positives", "speed")
 
 
 def parser() -> argparse.ArgumentParser:
@@ -52,7 +56,8 @@ def parser() -> argparse.ArgumentParser:
         "--attack-seeds",
         type=int,
         default=3,
-        help="robustness: seeds per level of the random attacks (default: %(default)s)",
+        help="robustness: seeds per level of the random attacks; meshbench: trials (payload and attack "
+        "seeds) per mesh and method (default: %(default)s)",
     )
     common.add_argument(
         "--fig21-copies",
@@ -78,6 +83,12 @@ def parser() -> argparse.ArgumentParser:
     }
     for s in SUITES:
         sub.add_parser(s, parents=[common], help=helps[s])
+    mb = sub.add_parser("meshbench", parents=[common],
+                        help="MeshBench's attacks and levels: raw BER beside the published Cho and Wang "
+                        "figures")
+    mb.add_argument("--msdm2-cli", metavar="PATH",
+                    help="build of bench/msdm2/msdm2_cli.cpp (MEPP2's MSDM2) for the perceptual score "
+                    "(default: $MESHMARK_MSDM2_CLI; without it MSDM2 is reported as not computed)")
     # mesh-format suites (issue 2): core.formats only, not part of "all"
     sub.add_parser("formats", parents=[common], help="core.formats read/write speed and memory vs trimesh")
     fz = sub.add_parser(
@@ -173,15 +184,16 @@ def main(argv: list[str] | None = None) -> int:
         if not meshes_dir().is_dir():
             print(f"shared meshes not found at {meshes_dir()} (set MESHMARK_TEST_MESHES)", file=sys.stderr)
             return 2
-    from bench import false_positives, paper, robustness, speed, summary
+    from bench import false_positives, meshbench, paper, robustness, speed, summary
 
     runners = {
         "robustness": robustness.run,
         "paper": paper.run,
         "false-positives": false_positives.run,
         "speed": speed.run,
+        "meshbench": meshbench.run,
     }
-    todo = list(runners) if args.suite == "all" else [] if args.suite == "summary" else [args.suite]
+    todo = list(ALL) if args.suite == "all" else [] if args.suite == "summary" else [args.suite]
     for s in todo:
         t = time.perf_counter()
         print(f"[bench] {s} ...", flush=True)

@@ -130,6 +130,41 @@ def test_simplify_and_subdivide_counts(sphere):
     assert len(f4) == 4 * len(f)
 
 
+def test_sqrt3_subdivision_closed(sphere):
+    v, f = sphere
+    v2, f2 = A.subdivide(v, f, "sqrt3", None)
+    assert len(v2) == len(v) + len(f) and len(f2) == 3 * len(f)
+    m = trimesh.Trimesh(v2, f2, process=False)
+    assert m.is_watertight and m.is_winding_consistent and m.volume > 0
+    assert np.allclose(v2[len(v) :], v[f].mean(axis=1))  # a new vertex at every centroid
+    # Kobbelt's relaxation of an original vertex of valence k
+    adj = A.adjacency_matrix(f, len(v))
+    i = 0
+    ring = adj[i].indices
+    k = len(ring)
+    alpha = (4 - 2 * np.cos(2 * np.pi / k)) / 9
+    assert np.allclose(v2[i], (1 - alpha) * v[i] + alpha * v[ring].mean(axis=0))
+    # every new edge joins two centroids or a centroid and an original vertex: no original edge is left
+    e = A.unique_edges(f2)
+    assert not np.any((e[:, 0] < len(v)) & (e[:, 1] < len(v)))
+
+
+def test_sqrt3_subdivision_open(sphere):
+    v, f = A.crop(*sphere, 0.3, np.random.default_rng(3))
+    edges = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    uniq, inv = np.unique(edges, axis=0, return_inverse=True)
+    count = np.bincount(inv.ravel())
+    v2, f2 = A.subdivide(v, f, "sqrt3", None)
+    # two triangles per interior edge, one per boundary edge
+    assert np.sum(count == 1) > 0 and len(f2) == 2 * np.sum(count == 2) + np.sum(count == 1)
+    assert trimesh.Trimesh(v2, f2, process=False).is_winding_consistent
+    # vertices on the boundary stay where they were, interior ones move
+    on_boundary = np.unique(uniq[count == 1])
+    assert np.array_equal(v2[on_boundary], v[on_boundary])
+    inside = np.setdiff1d(np.arange(len(v)), on_boundary)
+    assert np.all(np.linalg.norm(v2[inside] - v[inside], axis=1) > 0)
+
+
 def test_ply_and_obj_writers_are_exact(bumpy):
     v, f = bumpy
     v2, f2 = parse_ply_double(write_ply_double(v, f))
