@@ -108,6 +108,21 @@ def statistic(method: str, v: np.ndarray, mu: np.ndarray, axes: np.ndarray, lam:
     return (rho - tol.radius) * np.sqrt(lam[:, 0]) / scale
 
 
+def priorities(vertices: np.ndarray, adj: Adjacency, labels: Labels, key: str | bytes) -> np.ndarray:
+    """Keyed selection priority of every vertex: a hash of its label, with the geometric tie-break
+    of :func:`~core.sync.tie_broken` from :data:`TIE_BREAK_FROM` vertices."""
+    prio = mix64(labels.labels ^ _key_salts(key)[0])
+    return tie_broken(prio, vertices, adj) if len(vertices) >= TIE_BREAK_FROM else prio
+
+
+def same_order(before: np.ndarray, after: np.ndarray, adj: Adjacency) -> bool:
+    """Whether two priority vectors order every pair of neighbours alike (ties included), i.e.
+    give the same greedy selection (:func:`~core.sync.select_carriers` only compares neighbours)."""
+    a, b = adj.rows, adj.indices
+    return bool(np.array_equal(before[a] > before[b], after[a] > after[b])
+                and np.array_equal(before[a] == before[b], after[a] == after[b]))
+
+
 def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, methods: Sequence[str],
                     adj: Adjacency | None = None, labels: Labels | None = None,
                     tol: Tolerances = TOL) -> dict[str, Analysis]:
@@ -137,11 +152,8 @@ def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, m
         adj = adjacency(faces, len(v))
     if labels is None:
         labels = vertex_labels(v, adj)
-    salt_p, salt_s = _key_salts(key)
-    prio = mix64(labels.labels ^ salt_p)
-    if len(v) >= TIE_BREAK_FROM:
-        prio = tie_broken(prio, v, adj)
-    sel = select_carriers(adj, prio, labels.usable)
+    salt_s = _key_salts(key)[1]
+    sel = select_carriers(adj, priorities(v, adj, labels, key), labels.usable)
     mu, sigma = neighbour_moments(v, adj, sel)
     lam, axes = eigh3(sigma)
     lam = np.maximum(lam, 0.0)

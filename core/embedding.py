@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.analysis import Analysis, analyse, prepare, statistic
+from core.analysis import Analysis, analyse, prepare, priorities, same_order, statistic
 from core.mesh import Adjacency, bbox_diagonal
 from core.slots import assign_slots, ranked_by_default
 from core.sync import Labels, vertex_labels
@@ -201,6 +201,10 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
         caps.append(min(own, tol.max_displacement * diag))
     ranked = ranked_by_default(sum(carriers), L)
     rounds = [0] * len(meshes)
+    # the priorities each selection was made with: the tie-break of large meshes reads neighbour
+    # means, which a moved carrier changes for its (non-carrier) neighbours, so a selection can
+    # change under the embedding; it is checked when the moves are done, and made again if it did
+    chosen = [priorities(v, adj, lab, key) for v, adj, lab in zip(v0s, adjs, labels, strict=True)]
     for r in range(1, tol.verify_rounds + 1):
         hashes = [a.slot_hash for a in an]
         slots = assign_slots(hashes, L, ranked) if slot_rule is None else slot_rule(hashes, L)
@@ -247,8 +251,29 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
             else:
                 sel = np.flatnonzero(bad)
                 a.z[sel] = statistic(method, v[idx], sub.mu, sub.axes, sub.lam, sub.scale, tol)
-        if not any_bad:
+        if not any_bad and not _reselect(vs, faces, adjs, labels, key, method, tol, chosen, an):
             break
+    else:
+        # out of rounds: the caller verifies what the detector will see
+        _reselect(vs, faces, adjs, labels, key, method, tol, chosen, an)
     stats = [EmbedStats(carriers[k], int(skipped[k].sum()), int(np.any(vs[k] != v0s[k], axis=1).sum()),
                         rounds[k]) for k in range(len(meshes))]
     return vs, stats, an
+
+
+def _reselect(vs: list[np.ndarray], faces: list[np.ndarray], adjs: list[Adjacency], labels: list[Labels],
+              key: str | bytes, method: str, tol: Tolerances, chosen: list[np.ndarray],
+              an: list[Analysis]) -> bool:
+    """Make again, in place, the selection of every mesh whose priorities no longer order its
+    neighbours as when it was made (``chosen``); True when one was made again."""
+    again = False
+    for k, v in enumerate(vs):
+        if labels[k].regular:
+            continue  # analysed afresh after every move already
+        now = priorities(v, adjs[k], labels[k], key)
+        if same_order(chosen[k], now, adjs[k]):
+            continue
+        chosen[k] = now
+        an[k] = analyse(v, faces[k], key, method, adj=adjs[k], labels=labels[k], tol=tol)
+        again = True
+    return again

@@ -205,3 +205,17 @@ def test_capacity_with_the_key_is_exact_on_small_models(name: str, method: str, 
             payload = "".join(map(str, rng.integers(0, 2, n)))
             marked = embed_file(data, key, filename=name, payload=payload, method=method)
             assert detect_file(marked.data, key, filename=name, method=method).payload == payload, (key, n)
+
+
+@pytest.mark.parametrize("payload", ["00101010100100110110110111011010",
+                                     "0111011010111100011001111000001101011100011011011001011010111011"])
+def test_marked_file_reads_blind_when_moves_change_the_tie_break(payload: str) -> None:
+    """The geometric tie-break of the selection reads neighbour means, which a moved carrier changes
+    for its neighbours: on the horse these payloads changed the selection under the embedding, and
+    the marked file did not read blind although the embedder had verified its own (stale) view
+    (found by bench meshbench). The embedder now checks the order of the priorities after moving
+    and selects again when it changed."""
+    data = shared_mesh_path("horse.ply").read_bytes()
+    out = embed_file(data, "meshmark-bench-key", filename="horse.ply", payload=payload, method="ellipsoids")
+    found = detect_file(out.data, "meshmark-bench-key", filename="horse.ply", method="ellipsoids")
+    assert found.detected and found.crc_ok and found.payload == payload
