@@ -251,21 +251,27 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
             else:
                 sel = np.flatnonzero(bad)
                 a.z[sel] = statistic(method, v[idx], sub.mu, sub.axes, sub.lam, sub.scale, tol)
-        if not any_bad and not _reselect(vs, faces, adjs, labels, key, method, tol, chosen, an):
+        if not any_bad and not _reselect(vs, faces, adjs, labels, key, method, tol, chosen, an,
+                                         lambda hashes: assign_slots(hashes, L, ranked) if slot_rule is None
+                                         else slot_rule(hashes, L), codeword):
             break
     else:
         # out of rounds: the caller verifies what the detector will see
-        _reselect(vs, faces, adjs, labels, key, method, tol, chosen, an)
+        _reselect(vs, faces, adjs, labels, key, method, tol, chosen, an, None, codeword)
     stats = [EmbedStats(carriers[k], int(skipped[k].sum()), int(np.any(vs[k] != v0s[k], axis=1).sum()),
                         rounds[k]) for k in range(len(meshes))]
     return vs, stats, an
 
 
 def _reselect(vs: list[np.ndarray], faces: list[np.ndarray], adjs: list[Adjacency], labels: list[Labels],
-              key: str | bytes, method: str, tol: Tolerances, chosen: list[np.ndarray],
-              an: list[Analysis]) -> bool:
+              key: str | bytes, method: str, tol: Tolerances, chosen: list[np.ndarray], an: list[Analysis],
+              slots_of: Callable[[list[np.ndarray]], list[np.ndarray]] | None, codeword: np.ndarray) -> bool:
     """Make again, in place, the selection of every mesh whose priorities no longer order its
-    neighbours as when it was made (``chosen``); True when one was made again."""
+    neighbours as when it was made (``chosen``).  True when more moves are needed: a selection was
+    made again and, with ``slots_of`` (the slot rule), some slot's centred hard votes no longer
+    agree with ``codeword`` (when they all do, the detector's first variant reads the codeword
+    exactly, and the handful of carriers the new selection adds or drops is absorbed: a 1M-vertex
+    mesh re-selected three times in a row before this check)."""
     again = False
     for k, v in enumerate(vs):
         if labels[k].regular:
@@ -276,4 +282,13 @@ def _reselect(vs: list[np.ndarray], faces: list[np.ndarray], adjs: list[Adjacenc
         chosen[k] = now
         an[k] = analyse(v, faces[k], key, method, adj=adjs[k], labels=labels[k], tol=tol)
         again = True
-    return again
+    if not again or slots_of is None:
+        return again
+    slots = np.concatenate(slots_of([a.slot_hash for a in an]))
+    votes = np.concatenate([np.where(a.z > 0, 1.0, -1.0) for a in an])
+    if not len(votes):
+        return True
+    L = len(codeword)
+    sums = np.bincount(slots, (votes - votes.mean()) * np.where(codeword[slots] == 0, 1.0, -1.0), minlength=L)
+    filled = np.bincount(slots, minlength=L) > 0
+    return not (filled.all() and np.all(sums > 0))
