@@ -9,6 +9,8 @@ an unmarked mesh (or a wrong key, which reads random bits) passes that candidate
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from core.analysis import Analysis
@@ -137,20 +139,26 @@ def _posterior(slots: np.ndarray, raw: np.ndarray, sign: np.ndarray, sums: np.nd
     decoded codeword instead makes a wrong decoding look reliable.  With about one vote per slot
     (small meshes) there is no within-slot agreement to measure and the codeword fit is used.
     """
+    p = _carrier_error_rate(slots, raw, sign, sums, lambda: hamming_encode(bits))
+    return soft_decode(log_odds(p) * sums), p
+
+
+def _carrier_error_rate(slots: np.ndarray, raw: np.ndarray, sign: np.ndarray, sums: np.ndarray,
+                        codeword: Callable[[], np.ndarray]) -> float:
+    """Carrier error rate ``p`` from the votes' agreement within slots (method of moments, see
+    :func:`_posterior`), or, with too few pairs of votes in one slot, from their disagreement with
+    the decoded ``codeword()`` (per slot, computed only then)."""
     L = len(sums)
     votes = raw * sign[slots]
     n = np.bincount(slots, minlength=L).astype(np.float64)
     sq = np.bincount(slots, votes * votes, minlength=L)
     pairs = float((n * (n - 1)).sum())
     if pairs >= 50:
-        m2 = max(float((sums * sums - sq).sum()) / pairs, 0.0)
-        m = min(np.sqrt(m2), 1.0)
-        p = (1.0 - m) / 2.0 + 0.5 / (len(slots) + 2.0)
-    else:
-        cw = hamming_encode(bits)
-        disagree = float(((1.0 - 2.0 * cw[slots]) * votes < 0).sum()) if len(slots) else 0.0
-        p = (disagree + 1.0) / (len(slots) + 2.0)
-    return soft_decode(log_odds(p) * sums), p
+        m = min(np.sqrt(max(float((sums * sums - sq).sum()) / pairs, 0.0)), 1.0)
+        return (1.0 - m) / 2.0 + 0.5 / (len(slots) + 2.0)
+    cw = codeword()
+    disagree = float(((1.0 - 2.0 * cw[slots]) * votes < 0).sum()) if len(slots) else 0.0
+    return (disagree + 1.0) / (len(slots) + 2.0)
 
 
 def compact_slots(slot_hashes: list[np.ndarray]) -> np.ndarray:
@@ -168,17 +176,8 @@ def _compact_confidence(key: str | bytes, slots: np.ndarray, raw: np.ndarray, si
     is right with ``(1 + prod(2 q - 1)) / 2`` over those slots (the piling-up lemma, independent
     slots).  Every frame bit depends on about half the slots, so one doubtful slot makes every bit
     doubtful: the CRC, not these figures, decides the detection."""
-    L = len(sums)
-    votes = raw * sign[slots]
-    n = np.bincount(slots, minlength=L).astype(np.float64)
-    sq = np.bincount(slots, votes * votes, minlength=L)
-    pairs = float((n * (n - 1)).sum())
-    if pairs >= 50:
-        m = min(np.sqrt(max(float((sums * sums - sq).sum()) / pairs, 0.0)), 1.0)
-        p = (1.0 - m) / 2.0 + 0.5 / (len(slots) + 2.0)
-    else:
-        disagree = float(((1.0 - 2.0 * bits[slots]) * votes < 0).sum())
-        p = (disagree + 1.0) / (len(slots) + 2.0)
+    p = _carrier_error_rate(slots, raw, sign, sums, lambda: bits)
+    n = np.bincount(slots, minlength=len(sums))
     # an empty slot reads 0 whatever happens to the mesh (the embedder chose the free bits for it)
     q = np.where(n > 0, 1.0 / (1.0 + np.exp(-np.abs(log_odds(p) * sums))), 1.0)
     _, inv = compact_mixing(key)
