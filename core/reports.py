@@ -61,8 +61,8 @@ class DetectResult(_Report):
     bit_errors: int | None = None    # only with an expected payload
     p_value: float | None = None     # only with an expected payload
     parts: list[dict[str, Any]] = field(default_factory=list)
-    #: "midpoint" or "loop" when the mark was read on the mesh one subdivision step down (the file
-    #: had been subdivided after marking), else None
+    #: "midpoint", "loop" or "sqrt3" when the mark was read on the mesh one subdivision step down
+    #: (the file had been subdivided after marking), else None
     resampled: str | None = None
 
 @dataclass(frozen=True)

@@ -133,15 +133,17 @@ def _centre_faces(faces: np.ndarray, lab: np.ndarray, opp: np.ndarray) -> np.nda
 
 
 def undo_subdivision(vertices: np.ndarray, faces: np.ndarray) -> tuple[str, np.ndarray, np.ndarray] | None:
-    """The coarse mesh one subdivision step down, or None when ``faces`` is not a 1-to-4 step.
+    """The coarse mesh one subdivision step down, or None when ``faces`` is not such a step.
 
     Returns
     -------
     scheme : str
-        ``"midpoint"`` when the odd vertices are the midpoints of their edges, else ``"loop"``.
+        ``"midpoint"`` when the odd vertices of a 1-to-4 step are the midpoints of their edges,
+        ``"loop"`` for another 1-to-4 step, ``"sqrt3"`` for Kobbelt's sqrt(3) step.
     vertices : (k, 3) float64
-        Coarse positions (the even vertices; for Loop, the least-squares inverse of the odd rule).
-    faces : (m / 4, 3) int64
+        Coarse positions (the even vertices; for Loop and sqrt(3), the least-squares inverse of the
+        rule that placed the new vertices).
+    faces : (j, 3) int64
         Coarse triangles, oriented like the fine ones.
     """
     vertices = np.asarray(vertices, np.float64)
@@ -149,6 +151,11 @@ def undo_subdivision(vertices: np.ndarray, faces: np.ndarray) -> tuple[str, np.n
     n = len(vertices)
     if len(faces) < 4 or n < 6:
         return None
+    return _undo_one_to_four(vertices, faces) or _undo_sqrt3(vertices, faces)
+
+
+def _undo_one_to_four(vertices: np.ndarray, faces: np.ndarray) -> tuple[str, np.ndarray, np.ndarray] | None:
+    n = len(vertices)
     opp = _opposite(faces, n)
     lab = _labels(faces, n, opp)
     if lab is None:
@@ -191,8 +198,14 @@ def undo_subdivision(vertices: np.ndarray, faces: np.ndarray) -> tuple[str, np.n
     row_index = np.full(n, -1, np.int64)
     row_index[odd] = np.arange(len(odd))
     S = sp.csr_matrix((vals, (row_index[rows], cols)), shape=(len(odd), len(even)))
+    solved = _least_squares(S, vertices[odd], vertices[even])
+    return None if solved is None else ("loop", solved, coarse)
+
+
+def _least_squares(S: sp.csr_matrix, rhs_points: np.ndarray, start: np.ndarray) -> np.ndarray | None:
+    """Positions ``x`` minimising ``|S x - rhs_points|`` (three coordinates), from ``start``."""
     normal = (S.T @ S).tocsr()
-    rhs = S.T @ vertices[odd]
+    rhs = S.T @ rhs_points
     # well conditioned (the odd rule averages over 4 coarse vertices, each coarse vertex is in
     # about 6 equations): conjugate gradients from the even vertices' own positions converge in
     # a few dozen iterations, where a sparse LU of the same system took 0.7 s on 35k unknowns
@@ -200,13 +213,80 @@ def undo_subdivision(vertices: np.ndarray, faces: np.ndarray) -> tuple[str, np.n
     if np.any(diag <= 0):
         return None
     precond = sp.diags(1.0 / diag)
-    solved = np.empty((len(even), 3))
+    solved = np.empty((S.shape[1], 3))
     for k in range(3):
-        x, info = spla.cg(normal, rhs[:, k], x0=vertices[even, k], rtol=1e-13, atol=0.0, M=precond,
+        x, info = spla.cg(normal, rhs[:, k], x0=start[:, k], rtol=1e-13, atol=0.0, M=precond,
                           maxiter=CG_MAX_ITER)
         if info != 0:
             return None
         solved[:, k] = x
-    if not np.all(np.isfinite(solved)):
+    return solved if np.all(np.isfinite(solved)) else None
+
+
+def _undo_sqrt3(vertices: np.ndarray, faces: np.ndarray) -> tuple[str, np.ndarray, np.ndarray] | None:
+    """Kobbelt's sqrt(3) step undone: every face of the step has one old vertex and two new ones
+    (face centroids, valence 6, three old neighbours); old vertices are seeded where a new one is
+    impossible (valence != 6) and propagated face by face; the coarse faces are the new vertices'
+    old neighbours, oriented like the fine fan around them; positions are the least-squares
+    solution of "a new vertex is the centroid of its face" (the old vertices were relaxed)."""
+    n = len(vertices)
+    deg = np.bincount(faces.ravel(), minlength=n)
+    if (deg == 6).mean() < MIN_REGULAR_SHARE:
         return None
-    return "loop", solved, coarse
+    lab = np.full(n, UNKNOWN, np.int8)
+    lab[deg != 6] = EVEN  # old
+    if not (lab == EVEN).any():
+        return None
+    for _ in range(MAX_ROUNDS):
+        before = lab.copy()
+        lf = lab[faces]
+        clean = ~(lf == BAD).any(axis=1)
+        one_old = clean & ((lf == EVEN).sum(axis=1) == 1)
+        to_new = np.zeros(n, bool)
+        to_new[faces[one_old][lf[one_old] == UNKNOWN]] = True
+        two_new = clean & ((lf == ODD).sum(axis=1) == 2)
+        to_old = np.zeros(n, bool)
+        to_old[faces[two_new][lf[two_new] == UNKNOWN]] = True
+        bad = to_new & to_old
+        lab[to_new & ~bad & (lab == UNKNOWN)] = ODD
+        lab[to_old & ~bad & (lab == UNKNOWN)] = EVEN
+        lab[bad] = BAD
+        if np.array_equal(lab, before):
+            break
+    if np.count_nonzero(lab < 0) > MAX_BAD_SHARE * n:
+        return None
+    lf = lab[faces]
+    regular = ((lf == EVEN).sum(axis=1) == 1) & ((lf == ODD).sum(axis=1) == 2)
+    if regular.sum() < (1 - MAX_BAD_SHARE) * len(faces):
+        return None
+    # (new vertex, old neighbour) pairs from the regular faces, each pair once
+    fr = faces[regular]
+    old_pos = np.argmax(lab[fr] == EVEN, axis=1)
+    olds = fr[np.arange(len(fr)), old_pos]
+    news = np.stack([fr[np.arange(len(fr)), (old_pos + 1) % 3], fr[np.arange(len(fr)), (old_pos + 2) % 3]], 1)
+    pairs = np.unique(np.stack([news.ravel(), np.repeat(olds, 2)], 1), axis=0)
+    count = np.bincount(pairs[:, 0], minlength=n)
+    new_vertices = np.flatnonzero(count == 3)
+    if len(new_vertices) < (1 - MAX_BAD_SHARE) * np.count_nonzero(lab == ODD):
+        return None
+    rows = pairs[count[pairs[:, 0]] == 3]  # sorted by new vertex, three old each
+    tri = rows[:, 1].reshape(-1, 3)
+    centre_of = rows[::3, 0]
+    even = np.unique(tri)
+    index = np.full(n, -1, np.int64)
+    index[even] = np.arange(len(even))
+    coarse = index[tri]
+    # orientation: like the fan of fine faces around the new vertex
+    fan = np.zeros((n, 3))
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    normals = np.cross(b - a, c - a)
+    for k in range(3):
+        np.add.at(fan, faces[:, k], normals)
+    p0, p1, p2 = (vertices[tri[:, k]] for k in range(3))
+    flip = (np.cross(p1 - p0, p2 - p0) * fan[centre_of]).sum(axis=1) < 0
+    coarse[flip] = coarse[flip][:, ::-1]
+    rows3 = np.repeat(np.arange(len(coarse)), 3)
+    S = sp.csr_matrix((np.full(coarse.size, 1.0 / 3.0), (rows3, coarse.ravel())),
+                      shape=(len(coarse), len(even)))
+    solved = _least_squares(S, vertices[centre_of], vertices[even])
+    return None if solved is None else ("sqrt3", solved, coarse)

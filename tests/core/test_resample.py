@@ -9,6 +9,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from trimesh import remesh
 
+from bench.attacks import sqrt3_subdivide
 from core.api import detect_mesh, embed_mesh
 from core.resample import undo_subdivision
 from tests.conftest import shared_mesh_path
@@ -18,6 +19,8 @@ from tests.core.meshes import irregular_sphere, similarity
 def _subdivide(v: np.ndarray, f: np.ndarray, scheme: str) -> tuple[np.ndarray, np.ndarray]:
     if scheme == "midpoint":
         return remesh.subdivide(v, f)
+    if scheme == "sqrt3":
+        return sqrt3_subdivide(v, f)
     return remesh.subdivide_loop(v, f, iterations=1)
 
 
@@ -47,10 +50,13 @@ def _same_mesh(v1: np.ndarray, f1: np.ndarray, v2: np.ndarray, f2: np.ndarray, t
 
 
 @settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 10_000), scheme=st.sampled_from(["midpoint", "loop"]), open_=st.booleans())
+@given(seed=st.integers(0, 10_000), scheme=st.sampled_from(["midpoint", "loop", "sqrt3"]),
+       open_=st.booleans())
 def test_undo_gives_back_the_coarse_mesh(seed: int, scheme: str, open_: bool) -> None:
     """Whatever the vertex and face order of the subdivided mesh, the coarse mesh comes back
-    (Loop: its positions to rounding, from the odd vertices alone), boundaries included."""
+    (Loop and sqrt(3): its positions to rounding, from the new vertices alone), boundaries included
+    for the 1-to-4 schemes (the sqrt(3) attack's boundary rule is a simplification: closed only)."""
+    open_ = open_ and scheme != "sqrt3"
     v, f = _open_patch(seed) if open_ else irregular_sphere(200, seed)
     fine_v, fine_f = _subdivide(v, f, scheme)
     rng = np.random.default_rng(seed)
@@ -91,7 +97,7 @@ def test_meshes_that_are_not_subdivided_are_left_alone() -> None:
     assert undo_subdivision(np.asarray(sv), np.asarray(sf, np.int64)) is None
 
 
-@pytest.mark.parametrize("scheme", ["midpoint", "loop"])
+@pytest.mark.parametrize("scheme", ["midpoint", "loop", "sqrt3"])
 @pytest.mark.parametrize("method", ["ellipsoids", "planes"])
 def test_mark_is_read_after_subdivision(scheme: str, method: str) -> None:
     """The payload of a marked mesh comes back after a subdivision step, with its vertices and
