@@ -41,9 +41,10 @@ def test_meshbench_quick(tmp_path):
         if r["row"] in ("marked file", "file attack", "similarity"):
             # re-ordering and similarity change no bit of a moment-based mark
             assert r["ber"] == 0.0 and r["recovered"], r
-    # sqrt(3) subdivision moves every original vertex: the raw BER is near chance (measured 0.52 / 0.56)
-    sqrt3 = [r["ber"] for r in records if r["row"] == "subdivision" and r["bits"] == 64]
-    assert min(sqrt3) > 0.2
+    # sqrt(3) subdivision moves every original vertex (the raw BER was near chance, 0.52 / 0.56,
+    # before the detector learnt to undo the step): now read on the coarse mesh it recovers
+    sqrt3 = [r for r in records if r["row"] == "subdivision" and r["bits"] == 64]
+    assert sqrt3 and all(r["ber"] == 0.0 and r["recovered"] for r in sqrt3), sqrt3
     units = result["units"]
     for u in units:
         emb = next(e for e in u["embeds"] if e["bits"] == 64)

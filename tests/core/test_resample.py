@@ -9,11 +9,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from trimesh import remesh
 
-from bench.attacks import sqrt3_subdivide
 from core.api import detect_mesh, embed_mesh
 from core.resample import undo_subdivision
 from tests.conftest import shared_mesh_path
-from tests.core.meshes import irregular_sphere, similarity
+from tests.core.meshes import irregular_sphere, similarity, sqrt3_subdivide
 
 
 def _subdivide(v: np.ndarray, f: np.ndarray, scheme: str) -> tuple[np.ndarray, np.ndarray]:
