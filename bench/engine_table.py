@@ -38,6 +38,7 @@ CASES: dict[str, tuple[str, Any]] = {
     # issue 14's re-triangulation, smoothing and quantisation rows
     "midpoint": ("subdivide", "midpoint"),
     "Loop": ("subdivide", "loop"),
+    "sqrt(3)": ("subdivide", "sqrt3"),
     "quadric 10 %": ("simplify", 0.1),
     "quadric 30 %": ("simplify", 0.3),
     "quadric 50 %": ("simplify", 0.5),
