@@ -200,6 +200,10 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
         own = max(tol.max_move * bbox_diagonal(v), tol.coarse_move * med)
         caps.append(min(own, tol.max_displacement * diag))
     ranked = ranked_by_default(sum(carriers), L)
+
+    def slots_of(hashes: list[np.ndarray]) -> list[np.ndarray]:
+        return assign_slots(hashes, L, ranked) if slot_rule is None else slot_rule(hashes, L)
+
     rounds = [0] * len(meshes)
     # the priorities each selection was made with: the tie-break of large meshes reads neighbour
     # means, which a moved carrier changes for its (non-carrier) neighbours, so a selection can
@@ -207,7 +211,7 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
     chosen = [priorities(v, adj, lab, key) for v, adj, lab in zip(v0s, adjs, labels, strict=True)]
     for r in range(1, tol.verify_rounds + 1):
         hashes = [a.slot_hash for a in an]
-        slots = assign_slots(hashes, L, ranked) if slot_rule is None else slot_rule(hashes, L)
+        slots = slots_of(hashes)
         margin = strength if r == 1 else 0.5 * strength
         any_bad = False
         for k, a in enumerate(an):
@@ -251,9 +255,8 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
             else:
                 sel = np.flatnonzero(bad)
                 a.z[sel] = statistic(method, v[idx], sub.mu, sub.axes, sub.lam, sub.scale, tol)
-        if not any_bad and not _reselect(vs, faces, adjs, labels, key, method, tol, chosen, an,
-                                         lambda hashes: assign_slots(hashes, L, ranked) if slot_rule is None
-                                         else slot_rule(hashes, L), codeword):
+        if not any_bad and not _reselect(vs, faces, adjs, labels, key, method, tol, chosen, an, slots_of,
+                                         codeword):
             break
     else:
         # out of rounds: the caller verifies what the detector will see
