@@ -31,6 +31,10 @@ EMBED_HEADERS: dict[str, str] = {
     "X-MeshMark-Reencoded": "Compressed encodings whose streams were re-encoded with the settings read "
                             "from the file (`draco`, `meshopt`), comma-separated; `none` when every "
                             "other byte was kept.",
+    "X-MeshMark-Layers": "The layers that read the payload on their own, comma-separated: "
+                         "`connectivity` (always: carriers found by the mesh's connectivity, which "
+                         "survive crops and extracted parts) and `geometry` when the carriers found by "
+                         "position in the surface's frame do too (they survive re-triangulation).",
     "X-MeshMark-Report": "The whole embedding report as compact JSON.",
 }
 
@@ -76,6 +80,7 @@ def embedded_result(embedded: EmbeddedFile, filename: str | None) -> Rendered:
         "X-MeshMark-Hausdorff": f"{report.hausdorff:.6g}",
         "X-MeshMark-Skipped-Elements": str(report.skipped_elements),
         "X-MeshMark-Reencoded": ",".join(report.reencoded) or "none",
+        "X-MeshMark-Layers": ",".join(report.layers),
         "X-MeshMark-Report": _json(report.to_dict()).decode("ascii"),
     }
     return Rendered(embedded.data, embedded.media_type, headers)

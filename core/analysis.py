@@ -18,12 +18,13 @@ reads bit 0 (outside the boundary), ``z < 0`` bit 1 (inside).  Constants are fie
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from core.eig3 import eigh3
+from core.geosync import Placement, geometric_carriers
 from core.hashing import derive, mix64
 from core.mesh import Adjacency, adjacency, neighbour_moments
 from core.options import METHODS
@@ -53,6 +54,9 @@ class Analysis:
         Local scale ``s``.
     regular : bool
         The labels used the geometric fallback of regular meshes.
+    geometric : bool
+        The carriers were chosen by position in the surface's frame (:mod:`core.geosync`), their
+        slot hashes are cell hashes, and their slots are always hashed (never ranked).
     """
 
     carriers: np.ndarray
@@ -63,11 +67,12 @@ class Analysis:
     lam: np.ndarray
     scale: np.ndarray
     regular: bool
+    geometric: bool = False
 
     def subset(self, which: np.ndarray) -> Analysis:
         """The carriers selected by ``which`` (a boolean mask or indices)."""
         return Analysis(self.carriers[which], self.slot_hash[which], self.z[which], self.mu[which],
-                        self.axes[which], self.lam[which], self.scale[which], self.regular)
+                        self.axes[which], self.lam[which], self.scale[which], self.regular, self.geometric)
 
 
 #: vertices from which equal priorities are told apart by geometry: on smaller meshes a carrier's
@@ -154,6 +159,18 @@ def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, m
         labels = vertex_labels(v, adj)
     salt_s = _key_salts(key)[1]
     sel = select_carriers(adj, priorities(v, adj, labels, key), labels.usable)
+    return carrier_statistics(v, adj, sel, lambda chosen: mix64(labels.labels[chosen] ^ salt_s), methods,
+                              labels.regular, False, tol)
+
+
+def carrier_statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray,
+                       slot_hash: np.ndarray | Callable[[np.ndarray], np.ndarray], methods: Sequence[str],
+                       regular: bool, geometric: bool, tol: Tolerances = TOL) -> dict[str, Analysis]:
+    """Boundaries and statistics of the chosen vertices ``sel``, one :class:`Analysis` per method.
+
+    Vertices whose neighbourhood is a line or far coarser than the others' (``tol.min_flatness``,
+    ``tol.max_scale``) are dropped.  ``slot_hash``: one per vertex of ``sel``, or a function of the
+    kept vertices."""
     mu, sigma = neighbour_moments(v, adj, sel)
     lam, axes = eigh3(sigma)
     lam = np.maximum(lam, 0.0)
@@ -162,13 +179,22 @@ def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, m
     if ok.any():
         ok &= scale <= tol.max_scale * np.median(scale[ok])
     sel, mu, axes, lam, scale = sel[ok], mu[ok], axes[ok], lam[ok], scale[ok]
-    slot_hash = mix64(labels.labels[sel] ^ salt_s)
+    hashes = slot_hash(sel) if callable(slot_hash) else np.asarray(slot_hash)[ok]
     out = {}
     for method in methods:
         lam_m = lam + tol.alpha * (scale**2)[:, None] if method == "ellipsoids" else lam
         z = statistic(method, v[sel], mu, axes, lam_m, scale, tol)
-        out[method] = Analysis(sel, slot_hash, z, mu, axes, lam_m, scale, labels.regular)
+        out[method] = Analysis(sel, hashes, z, mu, axes, lam_m, scale, regular, geometric)
     return out
+
+
+def analyse_geometric(vertices: np.ndarray, adj: Adjacency, key: str | bytes, methods: Sequence[str],
+                      placement: Placement, tol: Tolerances = TOL) -> dict[str, Analysis]:
+    """The geometric carriers of a mesh (:func:`core.geosync.geometric_carriers` at ``placement``)
+    and their statistics, one :class:`Analysis` per method (``geometric=True``)."""
+    v = np.asarray(vertices, np.float64)
+    sel, cell_hash = geometric_carriers(v, adj, placement.frame, placement.axes, placement.rung, key)
+    return carrier_statistics(v, adj, sel, cell_hash, methods, False, True, tol)
 
 
 def analyse(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, method: str,

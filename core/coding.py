@@ -1,14 +1,17 @@
-"""Payload framing: key-derived code, CRC-32, Hamming(7,4), keyed whitening, soft decoding.
+"""Payload framing: key-derived code, CRC-32, convolutional code, keyed whitening, soft decoding.
 
 Frames
 ------
-* key-derived (the paper's mode): a 32-bit code derived from the key, Hamming(7,4) per
-  nibble -> 56 bits.  The detector knows the code from the key and counts bit errors.
-* explicit payload of 1-256 bits: ``payload + CRC-32(length, payload)``, zero-padded to
-  a multiple of 4, Hamming(7,4) per nibble.  The CRC makes a random match ~2**-32 per candidate.
+* key-derived (the paper's mode): a 32-bit code derived from the key, convolutionally coded
+  (:mod:`core.conv`, rate 1/2, 6 tail bits) -> 76 bits.  The detector knows the code from the key
+  and counts bit errors.
+* explicit payload of 1-256 bits: ``payload + CRC-32(length, payload)``, zero-padded to a
+  multiple of 4 (so that four lengths share a codeword length), convolutionally coded.  The CRC
+  and the padding make a random match ~2**-32 per candidate.
 * compact, for payloads of 1-:data:`COMPACT_MAX_PAYLOAD` bits on meshes with few carriers: the
   frame ``payload + free bits + CRC-32`` of :data:`COMPACT_BITS` bits times a keyed invertible
-  matrix, without Hamming.  The embedder chooses the free bits so that the carriers it cannot move
+  matrix, without the convolutional code.  The embedder chooses the free bits so that the carriers
+  it cannot move
   across their boundary already read what the codeword asks of them (a wet-paper code); every
   codeword bit depends on the free bits through the matrix, so any few dozen such carriers can be
   met.  The detector inverts the matrix and checks the CRC: 2**-32 per length tried.
@@ -26,20 +29,12 @@ from math import comb, log
 
 import numpy as np
 
-from core import gf2
+from core import conv, gf2
 from core.hashing import derive, derive_bytes
 
 MAX_PAYLOAD_BITS = 256
 KEY_CODE_BITS = 32
 CRC_BITS = 32
-
-# Hamming(7,4): codeword = [d1 d2 d3 d4 p1 p2 p3] (systematic)
-_G = np.array(
-    [[1, 0, 0, 0, 1, 1, 0], [0, 1, 0, 0, 1, 0, 1], [0, 0, 1, 0, 0, 1, 1], [0, 0, 0, 1, 1, 1, 1]], np.uint8
-)
-_MESSAGES = ((np.arange(16)[:, None] >> np.arange(3, -1, -1)) & 1).astype(np.uint8)  # (16, 4)
-_CODEWORDS = (_MESSAGES @ _G) % 2  # (16, 7)
-
 
 def bits_to_str(bits: np.ndarray) -> str:
     return "".join("1" if b else "0" for b in np.asarray(bits).ravel())
@@ -58,18 +53,23 @@ def crc_bits(bits: np.ndarray) -> np.ndarray:
     return np.array([(v >> (CRC_BITS - 1 - i)) & 1 for i in range(CRC_BITS)], np.uint8)
 
 
-def hamming_encode(bits: np.ndarray) -> np.ndarray:
-    """Hamming(7,4) of ``bits`` (zero-padded to a multiple of 4)."""
-    b = np.asarray(bits, np.uint8)
-    b = np.concatenate([b, np.zeros(-len(b) % 4, np.uint8)])
-    return ((b.reshape(-1, 4) @ _G) % 2).astype(np.uint8).ravel()
+def message_length(n_payload: int | None) -> int:
+    """Bits the code carries for a payload of ``n_payload`` bits: payload + CRC-32, zero-padded to a
+    multiple of 4 (``None``: the 32-bit key-derived code)."""
+    if n_payload is None:
+        return KEY_CODE_BITS
+    return 4 * -(-(n_payload + CRC_BITS) // 4)
+
+
+def message(payload: np.ndarray) -> np.ndarray:
+    """The coded message of ``payload``: the payload, its CRC-32 and the zero padding."""
+    body = np.concatenate([np.asarray(payload, np.uint8), crc_bits(payload)])
+    return np.concatenate([body, np.zeros(message_length(len(payload)) - len(body), np.uint8)])
 
 
 def codeword_length(n_payload: int | None) -> int:
     """Codeword bits for a payload of ``n_payload`` bits (``None``: the key-derived code)."""
-    if n_payload is None:
-        return 7 * KEY_CODE_BITS // 4
-    return 7 * -(-(n_payload + CRC_BITS) // 4)
+    return conv.coded_length(message_length(n_payload))
 
 
 @lru_cache(maxsize=1024)
@@ -83,10 +83,7 @@ def whitening(key: str | bytes, length: int) -> np.ndarray:
 
 def encode(key: str | bytes, payload: np.ndarray | None) -> np.ndarray:
     """Whitened codeword for ``payload`` (``None``: the key-derived 32-bit code)."""
-    if payload is None:
-        cw = hamming_encode(key_code(key))
-    else:
-        cw = hamming_encode(np.concatenate([payload, crc_bits(payload)]))
+    cw = conv.encode(key_code(key) if payload is None else message(payload))
     return cw ^ whitening(key, len(cw))
 
 
@@ -173,45 +170,24 @@ def compact_lengths(frame: np.ndarray, lengths: list[int]) -> list[int]:
 
 @dataclass(frozen=True)
 class Decoded:
-    """Soft-decoded message bits (before CRC split) with per-bit posterior confidence."""
+    """Soft-decoded message bits (before the CRC split) with per-bit posterior confidence."""
 
-    bits: np.ndarray        # (4k,) uint8
-    confidence: np.ndarray  # (4k,) float64 in [0.5, 1]
-
-
-_SIGNS = 1.0 - 2.0 * _CODEWORDS  # (16, 7): +1 for a 0 bit
+    bits: np.ndarray        # (n,) uint8
+    confidence: np.ndarray  # (n,) float64 in [0.5, 1]
 
 
-def ml_bits(llr: np.ndarray) -> np.ndarray:
-    """Maximum-likelihood Hamming(7,4) message bits of per-slot LLRs (0 for an empty slot)."""
-    score = np.asarray(llr, np.float64).reshape(-1, 7) @ _SIGNS.T
-    return _MESSAGES[np.argmax(score, axis=1)].ravel().astype(np.uint8)
+def ml_messages(llrs: list[np.ndarray]) -> list[np.ndarray]:
+    """Maximum-likelihood messages of several codewords' per-slot LLRs (0 for an empty slot):
+    :func:`core.conv.viterbi`, every candidate length in one pass."""
+    return conv.viterbi(llrs)
 
 
 def soft_decode(llr: np.ndarray) -> Decoded:
-    """Maximum-likelihood Hamming(7,4) decoding of per-slot log-likelihood ratios.
-
-    Parameters
-    ----------
-    llr : (7k,) float64
-        log P(bit=0)/P(bit=1) of every (de-whitened) codeword slot; 0 for an empty slot.
-
-    Returns
-    -------
-    Decoded
-        ML message bits and the posterior probability of each decoded bit, from the exact sum
-        over the 16 codewords of each block.
-    """
-    blocks = np.asarray(llr, np.float64).reshape(-1, 7)
-    score = 0.5 * blocks @ _SIGNS.T  # (k, 16) log-likelihood of each codeword (up to a constant)
-    score -= score.max(axis=1, keepdims=True)
-    post = np.exp(score)
-    post /= post.sum(axis=1, keepdims=True)
-    best = np.argmax(score, axis=1)
-    bits = _MESSAGES[best]  # (k, 4)
-    agree = (_MESSAGES[None, :, :] == bits[:, None, :])  # (k, 16, 4)
-    conf = (post[:, :, None] * agree).sum(axis=1)
-    return Decoded(bits.ravel().astype(np.uint8), np.clip(conf.ravel(), 0.5, 1.0))
+    """Exact per-bit posteriors of one codeword's calibrated per-slot log-likelihood ratios
+    (``log P(bit=0)/P(bit=1)`` of every de-whitened slot, 0 for an empty one): the most probable
+    message bits and the probability of each (:func:`core.conv.posteriors`)."""
+    bits, conf = conv.posteriors(llr)
+    return Decoded(bits, conf)
 
 
 def binomial_tail(errors: int, n: int) -> float:

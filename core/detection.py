@@ -10,9 +10,11 @@ an unmarked mesh (or a wrong key, which reads random bits) passes that candidate
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
+from core import conv
 from core.analysis import Analysis
 from core.coding import (
     COMPACT_BELOW,
@@ -31,10 +33,10 @@ from core.coding import (
     compact_unmix,
     compact_whitening,
     crc_bits,
-    hamming_encode,
     key_code,
     log_odds,
-    ml_bits,
+    message_length,
+    ml_messages,
     soft_decode,
     whitening,
 )
@@ -106,8 +108,7 @@ def _votes(analyses: list[Analysis], values: list[np.ndarray], key: str | bytes,
     cache = {} if cache is None else cache
     key_slots = ("slots", L, ranked)
     if key_slots not in cache:
-        hashes = [a.slot_hash for a in analyses]
-        cache[key_slots] = np.concatenate(assign_slots(hashes, L, ranked, cache)) if analyses \
+        cache[key_slots] = np.concatenate(layer_slots(analyses, L, ranked, cache)) if analyses \
             else np.zeros(0, np.int64)
     s = cache[key_slots]
     if len(s) == 0:
@@ -115,18 +116,93 @@ def _votes(analyses: list[Analysis], values: list[np.ndarray], key: str | bytes,
     # whitening balances 0s and 1s, so the mean raw vote is a bias every carrier shares (noise
     # pushes every carrier outwards, smoothing inwards): remove it before de-whitening, or it
     # turns into agreement within slots that looks like signal
+    # keyed by identity, with the list itself kept in the entry: a list freed by the caller cannot
+    # lend its id() to the next one (tracing read one variant's cached votes for another that way)
     key_u = ("centred", id(values))
-    if key_u not in cache:
+    if key_u not in cache or cache[key_u][0] is not values:
         u = np.concatenate(values)
-        cache[key_u] = u - u.mean()
-    return s, cache[key_u], 1.0 - 2.0 * whitening(key, L)
+        cache[key_u] = (values, u - u.mean())
+    return s, cache[key_u][1], 1.0 - 2.0 * whitening(key, L)
 
 
-def _decode(slots: np.ndarray, raw: np.ndarray, sign: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """ML message bits from the per-slot de-whitened vote sums (the LLR scale does not change the
-    argmax)."""
-    sums = np.bincount(slots, raw, minlength=len(sign)) * sign
-    return ml_bits(sums), sums
+def layer_slots(analyses: list[Analysis], L: int, ranked: bool | None = None,
+                cache: dict | None = None) -> list[np.ndarray]:
+    """Slot of every carrier of every analysis: connectivity carriers by
+    :func:`~core.slots.assign_slots` over all of them (ranked or hashed), geometric carriers by
+    their cell hash modulo ``L``."""
+    local = [a.slot_hash for a in analyses if not a.geometric]
+    dealt = iter(assign_slots(local, L, ranked, cache) if local else [])
+    return [(a.slot_hash % np.uint64(L)).astype(np.int64) if a.geometric else next(dealt) for a in analyses]
+
+
+def agreement(analyses: list[Analysis], lengths: list[int]) -> float:
+    """How well the carriers' hard votes agree within their slots, at the best codeword length of
+    ``lengths`` (slots hashed, as geometric carriers are): ``sum (S^2 - sum v^2) / sum n (n - 1)``
+    over the slots, the squared mean vote of a slot's carriers (about ``(1 - 2 p)^2`` for a marked
+    mesh, 0 for an unmarked one).  It does not change when a slot's votes all change sign, so it
+    says nothing about the decoded bits: choosing among candidate placements by it leaves the
+    chance that random bits pass a CRC as it was."""
+    if not analyses:
+        return 0.0
+    z = np.concatenate([a.z for a in analyses])
+    h = np.concatenate([a.slot_hash for a in analyses])
+    if len(z) < 2:
+        return 0.0
+    votes = np.where(z > 0, 1.0, -1.0)
+    votes -= votes.mean()
+    best = 0.0
+    for L in sorted(set(lengths)):
+        slots = (h % np.uint64(L)).astype(np.int64)
+        n = np.bincount(slots, minlength=L).astype(np.float64)
+        pairs = float((n * (n - 1)).sum())
+        if pairs <= 0:
+            continue
+        sums = np.bincount(slots, votes, minlength=L)
+        sq = np.bincount(slots, votes * votes, minlength=L)
+        best = max(best, float((sums * sums - sq).sum()) / pairs)
+    return best
+
+
+#: a codeword length is decoded only when its votes agree within slots by at least this many standard
+#: deviations of what random votes give (or when too few slots hold two votes to tell); a length the
+#: decoder could read gives about sqrt(L / 2) (8 for a 32-bit payload), random votes pass 1 in ~700
+MIN_AGREEMENT = 3.0
+#: ...and when the view has at least 1 / HOPELESS carriers per codeword bit
+HOPELESS = 4
+#: the shortest codeword lengths, decoded first (the 32-bit payload's is the 8th); the others
+#: are decoded together after them
+DECODE_BATCH = 8
+
+
+def _agreement_z(slots: np.ndarray, raw: np.ndarray, sums: np.ndarray, labels: tuple[np.ndarray, np.ndarray]
+                  ) -> float:
+    """Within-slot agreement of the votes of carriers with *different* label hashes, in units of its
+    standard deviation for random votes: ``(sum_j S_j^2 - sum_h T_h^2) / (mean v^2 sqrt(2 pairs))``
+    with ``T_h`` the vote sum of the carriers of hash ``h`` and ``pairs`` the ordered pairs of
+    carriers in one slot with different hashes (``inf`` when fewer than 50, or than half of all the
+    pairs in one slot: then the test would miss what the decoder can read).  Carriers of one label
+    always share a slot, and repeated labels (regular regions) have alike statistics: counted,
+    their pairs made wrong keys agree at 5-7 standard deviations on Spot.  Sign flips of whole
+    slots (de-whitening) do not change it.  ``labels``: each carrier's group of equal hashes and
+    the groups' sizes (``np.unique(hashes, return_inverse=True, return_counts=True)[1:]``)."""
+    L = len(sums)
+    n = np.bincount(slots, minlength=L).astype(np.float64)
+    group, count = labels
+    every = float((n * (n - 1)).sum())
+    pairs = float((n * n).sum() - (count * count).sum())
+    if pairs < max(50.0, 0.5 * every):
+        return float("inf")  # too few pairs of different labels to tell: decode
+    var = float((raw * raw).sum()) / max(len(slots), 1)
+    if var <= 0:
+        return 0.0
+    same = np.bincount(group, raw)
+    return float((sums * sums).sum() - (same * same).sum()) / (var * np.sqrt(2.0 * pairs))
+
+
+def _slot_sums(slots: np.ndarray, raw: np.ndarray, sign: np.ndarray) -> np.ndarray:
+    """Per-slot de-whitened vote sums (the decoder's LLRs up to a scale, which does not change the
+    most likely message)."""
+    return np.bincount(slots, raw, minlength=len(sign)) * sign
 
 
 def _posterior(slots: np.ndarray, raw: np.ndarray, sign: np.ndarray, sums: np.ndarray,
@@ -139,8 +215,12 @@ def _posterior(slots: np.ndarray, raw: np.ndarray, sign: np.ndarray, sums: np.nd
     decoded codeword instead makes a wrong decoding look reliable.  With about one vote per slot
     (small meshes) there is no within-slot agreement to measure and the codeword fit is used.
     """
-    p = _carrier_error_rate(slots, raw, sign, sums, lambda: hamming_encode(bits))
-    return soft_decode(log_odds(p) * sums), p
+    p = _carrier_error_rate(slots, raw, sign, sums, lambda: conv.encode(bits))
+    dec = soft_decode(log_odds(p) * sums)
+    # the confidence of the maximum-likelihood message's own bits (the posteriors' most likely
+    # value of a doubtful bit may differ from it)
+    conf = np.where(dec.bits == bits, dec.confidence, 1.0 - dec.confidence)
+    return Decoded(np.asarray(bits, np.uint8), conf), p
 
 
 def _carrier_error_rate(slots: np.ndarray, raw: np.ndarray, sign: np.ndarray, sums: np.ndarray,
@@ -192,52 +272,101 @@ VARIANTS = ((HARD, None), (ADAPTIVE, None), (ADAPTIVE, True), (ADAPTIVE, False),
 
 
 def _same_as_auto(analyses: list[Analysis], L: int, ranked: bool | None) -> bool:
-    """A forced slot assignment that equals the automatic one for every part (already tried)."""
-    return ranked is not None and ranked_by_default(sum(len(a.carriers) for a in analyses), L) == ranked
+    """A forced slot assignment that equals the automatic one for every part (already tried), or
+    that changes nothing (geometric carriers only)."""
+    local = [a for a in analyses if not a.geometric]
+    if ranked is None:
+        return False
+    return not local or ranked_by_default(sum(len(a.carriers) for a in local), L) == ranked
 
 
 def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
                     expected: np.ndarray | None = None) -> DetectResult:
-    """Decide from the analyses of every part, for each method tried.
+    """:func:`detect_views` with one view: the analyses of every part, for each method tried."""
+    return detect_views([(CONNECTIVITY, per_method)], key, expected)
+
+
+#: the layers a detection reads (``DetectResult.layer``): both layers' carriers together, the
+#: connectivity layer alone (a crop: the surface's frame moved), the geometric layer alone (a
+#: re-triangulation: the connectivity labels are gone)
+BOTH, CONNECTIVITY, GEOMETRY = "both", "connectivity", "geometry"
+
+#: a view: its layer name and, per method, the analyses of every part (or a function that makes
+#: them, called only when the views before it did not read)
+View = tuple[str, "dict[str, list[Analysis]] | Callable[[], dict[str, list[Analysis]]]"]
+
+
+def view_candidates(layer: str, per_method: dict[str, list[Analysis]] | None, methods: int,
+                    expected: np.ndarray | None) -> tuple[int, float]:
+    """Candidates a view tries and the chance that any of them passes on random bits: methods x
+    decoding variants x (every explicit length's CRC + zero padding, and the key-code test), plus
+    the compact frame's lengths when the view's connectivity carriers are fewer than
+    ``COMPACT_BELOW`` (only the connectivity view tries it).  The geometric view has no ranked
+    slots, so only the variants with the automatic assignment are tried there.  ``per_method``:
+    the view's analyses, or None for a view made lazily (it then counts as its layer allows)."""
+    variants = sum(1 for _, ranked in VARIANTS if layer != GEOMETRY or ranked is None)
+    n_tries = variants * methods
+    lengths = [len(expected)] if expected is not None else list(range(1, MAX_PAYLOAD_BITS + 1))
+    fp_explicit = sum(2.0 ** -(CRC_BITS + (message_length(n) - n - CRC_BITS)) for n in lengths)
+    fp_key = binomial_tail(KEY_CODE_MAX_ERRORS, KEY_CODE_BITS) if expected is None else 0.0
+    compact = _compact_lengths(per_method, lengths) if layer == CONNECTIVITY and per_method else []
+    return n_tries, n_tries * (fp_explicit + fp_key) + methods * len(compact) * 2.0**-CRC_BITS
+
+
+def _compact_lengths(per_method: dict[str, list[Analysis]], lengths: list[int]) -> list[int]:
+    """The compact frame's lengths, where it can have been embedded: few connectivity carriers."""
+    scarce = any(0 < sum(len(a.carriers) for a in analyses if not a.geometric) < COMPACT_BELOW
+                 for analyses in per_method.values())
+    return [n for n in lengths if n <= COMPACT_MAX_PAYLOAD] if scarce else []
+
+
+def detect_views(views: list[View], key: str | bytes, expected: np.ndarray | None = None) -> DetectResult:
+    """Decide from the views in turn; the first that reads the mark answers (``layer``).
 
     For each method, decoding variants (:data:`VARIANTS`) are tried in order over every explicit
     payload length (CRC test) and the key-derived code (bit errors); the first success of a method
     is its answer.  When several methods succeed (their statistics are correlated: both read the
     offset along ``e1``), the one whose carriers disagree least with the decoded codeword wins.
+    ``false_positive_probability`` is the union bound over every candidate of every view, whether
+    or not it was reached (:func:`view_candidates`; the views share their methods).
     """
-    n_tries = len(VARIANTS) * len(per_method)
     lengths = [len(expected)] if expected is not None else list(range(1, MAX_PAYLOAD_BITS + 1))
-    # chance that one random candidate passes: CRC (+ zero padding) or the key-code test
-    fp_explicit = sum(2.0 ** -(CRC_BITS + (codeword_length(n) // 7 * 4 - n - CRC_BITS)) for n in lengths)
-    fp_key = binomial_tail(KEY_CODE_MAX_ERRORS, KEY_CODE_BITS) if expected is None else 0.0
-    # the compact frame only where it can have been embedded: few carriers
-    scarce = any(sum(len(a.carriers) for a in analyses) < COMPACT_BELOW for analyses in per_method.values())
-    compact = [n for n in lengths if n <= COMPACT_MAX_PAYLOAD] if scarce else []
-    fp_compact = len(compact) * 2.0**-CRC_BITS  # tried in the first variant only, once per method
-    fpp_total = min(1.0, n_tries * (fp_explicit + fp_key) + len(per_method) * fp_compact)
-    decoders = [_MethodDecoder(method, analyses, key, expected, lengths, n_tries, fpp_total, compact)
-                for method, analyses in per_method.items()]
-    # variant by variant across the methods: a method that reads the mark the embedder's way
-    # answers before any other is decoded the attack-tolerant ways
-    for adaptive, ranked in VARIANTS:
-        # the key-derived code of every method first (one candidate each), then the explicit
-        # lengths, then the compact frame
-        for frame in ("key", "explicit", "compact"):
-            found = [hit for d in decoders if (hit := d.try_variant(adaptive, ranked, frame)) is not None]
-            if found:
-                return min(found, key=lambda item: item[0])[1]
+    given = next((v for _, v in views if isinstance(v, dict)), {})
+    methods = max(len(given), 1)
+    totals = [view_candidates(layer, v if isinstance(v, dict) else None, methods, expected)
+              for layer, v in views]
+    n_tries = sum(t for t, _ in totals)
+    fpp_total = min(1.0, sum(p for _, p in totals))
+    near: list[DetectResult] = []
+    for layer, made in views:
+        per_method = made if isinstance(made, dict) else made()
+        if not any(len(a.carriers) for analyses in per_method.values() for a in analyses):
+            continue
+        compact = _compact_lengths(per_method, lengths)
+        decoders = [_MethodDecoder(method, analyses, key, expected, lengths, n_tries, fpp_total, compact)
+                    for method, analyses in per_method.items()]
+        # variant by variant across the methods: a method that reads the mark the embedder's way
+        # answers before any other is decoded the attack-tolerant ways
+        for adaptive, ranked in VARIANTS:
+            # the key-derived code of every method first (one candidate each), then the explicit
+            # lengths, then the compact frame
+            for frame in ("key", "explicit", "compact"):
+                found = [hit for d in decoders if (hit := d.try_variant(adaptive, ranked, frame)) is not None]
+                if found:
+                    return replace(min(found, key=lambda item: item[0])[1], layer=layer)
+        near += [replace(d.near, layer=layer) for d in decoders if d.near is not None]
     # informed detection accepted by its p-value but without an exact CRC match
-    accepted = [d.near for d in decoders if d.near is not None and d.near.detected]
+    accepted = [r for r in near if r.detected]
     if accepted:
         return accepted[0]
     closest: DetectResult | None = None
-    for d in decoders:
-        if d.near is not None and (closest is None or (d.near.bit_errors or 0) < (closest.bit_errors or 0)):
-            closest = d.near
+    for r in near:
+        if closest is None or (r.bit_errors or 0) < (closest.bit_errors or 0):
+            closest = r
     if closest is not None:
         return closest
-    method0 = next(iter(per_method), None)
-    analyses0 = per_method.get(method0, []) if method0 else []
+    method0 = next(iter(given), None)
+    analyses0 = [a for a in given.get(method0, []) if not a.geometric] if method0 else []
     carriers0 = int(sum(len(a.carriers) for a in analyses0))
     return DetectResult(detected=False, payload=None, bit_confidence=[], false_positive_probability=1.0,
                         copies=0.0, carriers=carriers0, crc_ok=False, method=method0, key_derived=False,
@@ -258,10 +387,14 @@ class _MethodDecoder:
             self.by_L.setdefault(codeword_length(n), []).append(n)
         self.carriers = int(sum(len(a.carriers) for a in analyses))
         self.parts = [{"carriers": len(a.carriers), "regular_fallback": bool(a.regular)}
-                      for a in analyses]
+                      for a in analyses if not a.geometric]
+        self.geometric = int(sum(len(a.carriers) for a in analyses if a.geometric))
         #: with an expected payload, the closest candidate so far
         self.near: DetectResult | None = None
         self.values = {mode: _soft_values(analyses, mode) for mode in (HARD, ADAPTIVE, SCALED)}
+        hashes = np.concatenate([a.slot_hash for a in analyses]) if analyses else np.zeros(0, np.uint64)
+        _, group, count = np.unique(hashes, return_inverse=True, return_counts=True)
+        self.labels = (group.ravel(), count.astype(np.float64))
         self.cache: dict = {}
 
     def try_variant(self, adaptive: int, ranked: bool | None, frame: str
@@ -277,7 +410,7 @@ class _MethodDecoder:
         """The compact frame: hard decision per slot, the keyed matrix inverted, the CRC of every
         length up to :data:`~core.coding.COMPACT_MAX_PAYLOAD` checked (no error correction)."""
         analyses, L = self.analyses, COMPACT_BITS
-        if not self.compact or adaptive != HARD or ranked is not None:
+        if not self.compact or adaptive != HARD or ranked is not None or self.geometric:
             # the embedder's own reading only: without error correction the frame does not survive
             # what the other variants are for, and each variant tried would add to the false positives
             return None
@@ -304,7 +437,8 @@ class _MethodDecoder:
                 bit_confidence=[round(float(c), 6) for c in conf[:n]],
                 false_positive_probability=self.fpp_total, copies=round(self.carriers / L, 3),
                 carriers=self.carriers, crc_ok=True, method=self.method, key_derived=False,
-                bit_errors=errors, p_value=None if errors is None else binomial_tail(0, n), parts=self.parts)
+                bit_errors=errors, p_value=None if errors is None else binomial_tail(0, n), parts=self.parts,
+                geometric_carriers=self.geometric)
         return None
 
     def _key_code(self, adaptive: int, ranked: bool | None) -> tuple[float, DetectResult] | None:
@@ -315,7 +449,8 @@ class _MethodDecoder:
         slots, raw, sign = _votes(analyses, self.values[adaptive], self.key, L, ranked, self.cache)
         if not len(slots):
             return None
-        msg, sums = _decode(slots, raw, sign)
+        sums = _slot_sums(slots, raw, sign)
+        msg = ml_messages([sums])[0]
         errors = int((msg[:KEY_CODE_BITS] != self.code).sum())
         if errors > KEY_CODE_MAX_ERRORS:
             return None
@@ -325,19 +460,34 @@ class _MethodDecoder:
             bit_confidence=[round(float(c), 6) for c in dec.confidence[:KEY_CODE_BITS]],
             false_positive_probability=self.fpp_total, copies=round(carriers / L, 3), carriers=carriers,
             crc_ok=False, method=self.method, key_derived=True, bit_errors=errors,
-            p_value=binomial_tail(errors, KEY_CODE_BITS), parts=self.parts)
+            p_value=binomial_tail(errors, KEY_CODE_BITS), parts=self.parts, geometric_carriers=self.geometric)
 
     def _explicit(self, adaptive: int, ranked: bool | None) -> tuple[float, DetectResult] | None:
-        analyses, key, expected, carriers = self.analyses, self.key, self.expected, self.carriers
-        method, parts, cache = self.method, self.parts, self.cache
+        analyses, key, carriers, cache = self.analyses, self.key, self.carriers, self.cache
+        # the codeword lengths in two batches, the shortest first: each batch's slot sums, then one
+        # pass of the decoder over all of them (a short payload is found without the long ones)
+        todo = [(L, ns) for L, ns in self.by_L.items()
+                if not _same_as_auto(analyses, L, ranked) and HOPELESS * carriers >= L]
+        for batch in (todo[:DECODE_BATCH], todo[DECODE_BATCH:]):
+            gathered = []
+            for L, ns in batch:
+                slots, raw, sign = _votes(analyses, self.values[adaptive], key, L, ranked, cache)
+                if len(slots):
+                    sums = _slot_sums(slots, raw, sign)
+                    if _agreement_z(slots, raw, sums, self.labels) >= MIN_AGREEMENT:
+                        gathered.append((L, ns, slots, raw, sign, sums))
+            hit = self._explicit_batch(gathered)
+            if hit is not None:
+                return hit
+        return None
+
+    def _explicit_batch(self, gathered: list) -> tuple[float, DetectResult] | None:
+        """Decode the candidate lengths ``gathered`` (codeword length, payload lengths, slots, votes,
+        signs, slot sums) and test every payload length's CRC (or expected payload)."""
+        expected, carriers, method, parts = self.expected, self.carriers, self.method, self.parts
         n_tries, fpp_total = self.n_tries, self.fpp_total
-        for L, ns in self.by_L.items():
-            if _same_as_auto(analyses, L, ranked):
-                continue
-            slots, raw, sign = _votes(analyses, self.values[adaptive], key, L, ranked, cache)
-            if len(slots) == 0:
-                continue
-            msg, sums = _decode(slots, raw, sign)
+        messages = ml_messages([g[5] for g in gathered])
+        for (L, ns, slots, raw, sign, sums), msg in zip(gathered, messages, strict=True):
             for n in ns:
                 payload, crc, pad = msg[:n], msg[n:n + CRC_BITS], msg[n + CRC_BITS:]
                 crc_ok = bool(np.array_equal(crc, crc_bits(payload)) and not pad.any())
@@ -360,7 +510,8 @@ class _MethodDecoder:
                     bit_confidence=[round(float(c), 6) for c in dec.confidence[:n]],
                     false_positive_probability=fpp if ok else 1.0,
                     copies=round(carriers / L, 3), carriers=carriers, crc_ok=crc_ok, method=method,
-                    key_derived=False, bit_errors=errors, p_value=p_value, parts=parts)
+                    key_derived=False, bit_errors=errors, p_value=p_value, parts=parts,
+                    geometric_carriers=self.geometric)
                 if ok and (expected is None or (crc_ok and errors == 0)):
                     return p_err, res
                 if near is None or (near.bit_errors or 0) > (errors or 0) or (ok and not near.detected):

@@ -10,11 +10,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
-from core.analysis import Analysis, analyse, prepare, priorities, same_order, statistic
-from core.mesh import Adjacency, bbox_diagonal
+from core.analysis import Analysis, analyse, analyse_geometric, prepare, priorities, same_order, statistic
+from core.eig3 import eigh3
+from core.geosync import Placement
+from core.mesh import Adjacency, bbox_diagonal, neighbour_moments
 from core.slots import assign_slots, ranked_by_default
 from core.sync import Labels, vertex_labels
 from core.tolerances import TOL, Tolerances
@@ -121,20 +124,95 @@ def budget_cap(moves: np.ndarray, rms: float, n: int) -> float:
     return float(m[fits][-1]) if fits.any() else 0.0
 
 
+#: under an RMS budget every carrier's margin may go down to this share of the strength before the
+#: largest moves are left out (found by MARGIN_STEPS halvings)
+MIN_MARGIN, MARGIN_STEPS = 0.4, 12
+#: rounds after which a mesh with geometric carriers stops when at most SETTLED of its carriers
+#: still read wrong: cells whose nearest vertex flips with the moves around it never settle (on the
+#: bunny 28 carriers of 11,400 kept flipping between two states from round 5 on)
+SETTLE_AFTER, SETTLED = 3, 0.005
+
+
 @dataclass(frozen=True)
 class EmbedStats:
-    """What the embedding did to one mesh."""
+    """What the embedding did to one mesh.
+
+    ``carriers`` counts the connectivity layer's carriers; ``geometric`` is the detector's view of
+    the geometric layer after the embedding (``None`` without one), ``skipped`` the carriers of
+    either layer left alone."""
 
     carriers: int
     skipped: int
     moved: int
     rounds: int
+    geometric: Analysis | None = None
+
+
+def _refresh(a: Analysis, v: np.ndarray, adj: Adjacency, which: np.ndarray, method: str,
+             tol: Tolerances) -> None:
+    """Recompute, in place, the boundaries and statistics of the carriers ``which`` (indices into
+    ``a``) at positions ``v``: their neighbourhoods moved (a geometric carrier next to them did)."""
+    if not which.size:
+        return
+    mu, sigma = neighbour_moments(v, adj, a.carriers[which])
+    lam, axes = eigh3(sigma)
+    lam = np.maximum(lam, 0.0)
+    scale = np.sqrt(lam.sum(axis=1))
+    lam_m = lam + tol.alpha * (scale**2)[:, None] if method == "ellipsoids" else lam
+    a.mu[which], a.axes[which], a.lam[which], a.scale[which] = mu, axes, lam_m, scale
+    a.z[which] = statistic(method, v[a.carriers[which]], mu, axes, lam_m, np.maximum(scale, 1e-300), tol)
+
+
+@dataclass
+class _Moves:
+    """Where the carriers of one layer that read wrong would go: their vertices ``idx``, new
+    positions, whether each move is made (``ok``), was cut to the cap (``over``), and its length
+    within the cap (``eff``)."""
+
+    idx: np.ndarray
+    new: np.ndarray
+    ok: np.ndarray
+    over: np.ndarray
+    eff: np.ndarray
+
+
+def _moves(method: str, b: Analysis, bits: np.ndarray, bad: np.ndarray, v: np.ndarray, v0: np.ndarray,
+           margin: float, cap: float, tol: Tolerances) -> _Moves:
+    """The moves that put the carriers ``bad`` of ``b`` on the side of their ``bits`` with ``margin``;
+    a move over ``cap`` (or the carrier's own limit) is cut to it and made when the carrier then
+    still reads its bit with ``tol.clip_margin x margin``, else not made."""
+    idx = b.carriers[bad]
+    sub = b.subset(bad)
+    want = np.where(bits[bad] == 0, 1.0, -1.0)
+    new = target_positions(method, sub, v[idx], bits[bad], margin, tol)
+    move = np.linalg.norm(new - v0[idx], axis=1)
+    lim = np.minimum(tol.max_local_move * sub.scale, cap)
+    ok = move <= lim
+    over = np.flatnonzero(~ok)
+    if over.size:
+        base = v0[idx[over]]
+        new[over] = base + (new[over] - base) * (lim[over] / move[over])[:, None]
+        cut = sub.subset(over)
+        zc = statistic(method, new[over], cut.mu, cut.axes, cut.lam, cut.scale, tol)
+        ok[over[want[over] * zc >= tol.clip_margin * margin]] = True
+    return _Moves(idx, new, ok, move > lim, np.minimum(move, lim))
+
+
+def _touched(a: Analysis, adj: Adjacency, moved: np.ndarray) -> np.ndarray:
+    """Indices into ``a`` of the carriers with a neighbour in the vertex mask ``moved``."""
+    if not a.carriers.size:
+        return np.zeros(0, np.int64)
+    _, pos = adj.ring_entries(a.carriers)
+    hit = moved[adj.indices[pos]].astype(np.int64)
+    seg = np.repeat(np.arange(len(a.carriers)), adj.degree[a.carriers])
+    return np.flatnonzero(np.bincount(seg, hit, minlength=len(a.carriers)) > 0)
 
 
 def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | bytes, codeword: np.ndarray,
                 method: str, strength: float, quantize: Quantize | None = None, tol: Tolerances = TOL,
                 prepared: list[tuple[Adjacency, Labels]] | None = None, rms_budget: float | None = None,
-                diagonal: float | None = None, slot_rule: SlotRule | None = None
+                diagonal: float | None = None, slot_rule: SlotRule | None = None,
+                placements: Sequence[Placement | None] | None = None
                 ) -> tuple[list[np.ndarray], list[EmbedStats], list[Analysis]]:
     """Move carriers of one or several meshes so that the detector reads ``codeword``.
 
@@ -157,7 +235,8 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
     rms_budget : float, optional
         Largest RMS displacement of each mesh's vertices, as a fraction of its bounding-box
         diagonal: the first round moves carriers in order of increasing displacement while the
-        budget lasts and leaves the others (``tol.rms_budget`` at the default strength).
+        budget lasts and leaves the others (``tol.rms_budget`` at the default strength).  The
+        geometric layer's moves are made first and count against it.
     diagonal : float, optional
         The bounding-box diagonal the displacement ceiling and the RMS budget refer to: the
         file's, so that a small part of a scene is not held to its own size (default: each
@@ -165,105 +244,186 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
     slot_rule : callable, optional
         The slots of the carriers (default: :func:`~core.slots.assign_slots`, ranked or hashed by
         the carrier count); the compact frame's are :func:`~core.slots.bucketed_slots`.
+    placements : sequence of Placement or None, optional
+        Per mesh, where its geometric carriers are (:mod:`core.geosync`); they carry the same
+        codeword with hashed slots (``cell hash mod L``).  A vertex that is a carrier of both
+        layers reads the geometric layer's bit.
 
     Returns
     -------
     new_vertices : list of (n, 3) float64 ndarray
     stats : list of EmbedStats
+        With each mesh's geometric carriers as the detector will see them.
     analyses : list of Analysis
-        The detector's view of the result (the verification).
+        The detector's view of the connectivity layer's carriers (the verification).
 
     Notes
     -----
-    Carriers are independent (no two adjacent), so moving them changes no carrier's
+    Connectivity carriers are independent (no two adjacent), so moving them changes no carrier's
     neighbourhood: with connectivity labels the selection of the stego mesh is the same, and
-    only the moved carriers' statistics need re-reading after quantisation.  With the regular
-    fallback the labels depend on geometry, so each round re-analyses the whole mesh.
+    only the moved carriers' statistics need re-reading after quantisation.  Geometric carriers
+    may sit next to connectivity carriers: after every round the carriers next to a moved vertex
+    are read again, and the geometric carriers chosen again (moves change which vertex is nearest
+    to a cell's centre).  With the regular fallback the labels depend on geometry, so each round
+    re-analyses the whole mesh.
     """
     L = len(codeword)
     v0s = [np.asarray(v, np.float64) for v, _ in meshes]
     faces = [np.asarray(f, np.int64) for _, f in meshes]
     if prepared is None:
         prepared = prepare(v0s, faces)
-    adjs = [adj for adj, _ in prepared]
-    labels = [lab for _, lab in prepared]
-    vs = [v.copy() for v in v0s]
-    skipped = [np.zeros(len(v), bool) for v in v0s]
-    held = [np.zeros(len(v), bool) for v in v0s]
-    an = [analyse(v, f, key, method, adj=adj, labels=lab, tol=tol)
-          for v, f, adj, lab in zip(v0s, faces, adjs, labels, strict=True)]
-    carriers = [len(a.carriers) for a in an]
-    caps = []
-    diags = [bbox_diagonal(v) if diagonal is None else diagonal for v in v0s]
-    for v, a, diag in zip(v0s, an, diags, strict=True):
-        med = float(np.median(a.scale)) if len(a.scale) else 0.0
-        own = max(tol.max_move * bbox_diagonal(v), tol.coarse_move * med)
-        caps.append(min(own, tol.max_displacement * diag))
-    ranked = ranked_by_default(sum(carriers), L)
+    places = list(placements) if placements is not None else [None] * len(meshes)
+    states = [_Mesh(v, f, adj, lab, key, method, tol, p, bbox_diagonal(v) if diagonal is None else diagonal,
+                    strength) for v, f, (adj, lab), p in zip(v0s, faces, prepared, places, strict=True)]
+    an = [st.local for st in states]
+    ranked = ranked_by_default(sum(len(a.carriers) for a in an), L)
 
     def slots_of(hashes: list[np.ndarray]) -> list[np.ndarray]:
         return assign_slots(hashes, L, ranked) if slot_rule is None else slot_rule(hashes, L)
 
     rounds = [0] * len(meshes)
     # the priorities each selection was made with: the tie-break of large meshes reads neighbour
-    # means, which a moved carrier changes for its (non-carrier) neighbours, so a selection can
+    # means, which a moved carriers changes for its (non-carrier) neighbours, so a selection can
     # change under the embedding; it is checked when the moves are done, and made again if it did
-    chosen = [priorities(v, adj, lab, key) for v, adj, lab in zip(v0s, adjs, labels, strict=True)]
+    chosen = [priorities(st.v0, st.adj, st.labels, key) for st in states]
     for r in range(1, tol.verify_rounds + 1):
-        hashes = [a.slot_hash for a in an]
-        slots = slots_of(hashes)
-        margin = strength if r == 1 else 0.5 * strength
+        slots = slots_of([a.slot_hash for a in an])
         any_bad = False
-        for k, a in enumerate(an):
-            bits = codeword[slots[k]]
-            want = np.where(bits == 0, 1.0, -1.0)
-            bad = (want * a.z < margin) & ~skipped[k][a.carriers] & ~held[k][a.carriers]
-            if not bad.any():
-                continue
-            any_bad = True
-            rounds[k] = r
-            v, v0 = vs[k], v0s[k]
-            idx = a.carriers[bad]
-            sub = a.subset(bad)
-            new = target_positions(method, sub, v[idx], bits[bad], strength, tol)
-            move = np.linalg.norm(new - v0[idx], axis=1)
-            lim = np.minimum(tol.max_local_move * sub.scale, caps[k])
-            # a move over the cap is cut to the cap: kept when the carrier still ends up on the
-            # right side with some margin (then not pushed again), else the carrier is left alone
-            okm = move <= lim
-            over = np.flatnonzero(~okm)
-            if over.size:
-                base = v0[idx[over]]
-                new[over] = base + (new[over] - base) * (lim[over] / move[over])[:, None]
-                cut = sub.subset(over)
-                zc = statistic(method, new[over], cut.mu, cut.axes, cut.lam, cut.scale, tol)
-                okm[over[want[bad][over] * zc >= tol.clip_margin * strength]] = True
-            if r == 1 and rms_budget is not None:
-                # the budget goes to the smallest moves; the largest are left
-                eff = np.minimum(move, lim)
-                caps[k] = min(caps[k], budget_cap(eff[okm], rms_budget * diags[k], len(v)))
-                okm &= eff <= caps[k]
-            held[k][idx[okm & (move > lim)]] = True
-            skipped[k][idx[~okm]] = True
-            moved_v = new[okm]
-            if quantize is not None:
-                moved_v = quantize(k, idx[okm], moved_v)
-            v[idx[okm]] = moved_v
-            if labels[k].regular:
-                labels[k] = vertex_labels(v, adjs[k], labels[k])
-                an[k] = analyse(v, faces[k], key, method, adj=adjs[k], labels=labels[k], tol=tol)
-            else:
-                sel = np.flatnonzero(bad)
-                a.z[sel] = statistic(method, v[idx], sub.mu, sub.axes, sub.lam, sub.scale, tol)
-        if not any_bad and not _reselect(vs, faces, adjs, labels, key, method, tol, chosen, an, slots_of,
+        for k, st in enumerate(states):
+            st.local = an[k]
+            store = None if quantize is None else partial(quantize, k)
+            if st.round(r, codeword, slots[k], rms_budget, store):
+                any_bad = True
+                rounds[k] = r
+            an[k] = st.local
+        if not any_bad and not _reselect([st.v for st in states], faces, [st.adj for st in states],
+                                         [st.labels for st in states], key, method, tol, chosen, an, slots_of,
                                          codeword):
             break
     else:
         # out of rounds: the caller verifies what the detector will see
-        _reselect(vs, faces, adjs, labels, key, method, tol, chosen, an, None, codeword)
-    stats = [EmbedStats(carriers[k], int(skipped[k].sum()), int(np.any(vs[k] != v0s[k], axis=1).sum()),
-                        rounds[k]) for k in range(len(meshes))]
-    return vs, stats, an
+        _reselect([st.v for st in states], faces, [st.adj for st in states], [st.labels for st in states],
+                  key, method, tol, chosen, an, None, codeword)
+    stats = [EmbedStats(len(st.local0), int(st.skipped.sum()), int(np.any(st.v != st.v0, axis=1).sum()),
+                        rounds[k], st.geo) for k, st in enumerate(states)]
+    return [st.v for st in states], stats, an
+
+
+class _Mesh:
+    """One mesh being embedded: its positions, both layers' carriers and what the rounds decided
+    (carriers left alone, carriers cut to the cap and readable, caps and margins)."""
+
+    def __init__(self, v0: np.ndarray, faces: np.ndarray, adj: Adjacency, labels: Labels, key: str | bytes,
+                 method: str, tol: Tolerances, placement: Placement | None, diagonal: float,
+                 strength: float) -> None:
+        self.v0, self.v, self.faces, self.adj, self.labels = v0, v0.copy(), faces, adj, labels
+        self.key, self.method, self.tol, self.placement, self.diag = key, method, tol, placement, diagonal
+        self.local = analyse(v0, faces, key, method, adj=adj, labels=labels, tol=tol)
+        self.local0 = self.local.carriers
+        self.geo = self._geometric()
+        self.skipped = np.zeros(len(v0), bool)
+        self.held = np.zeros(len(v0), bool)
+        med = float(np.median(self.local.scale)) if len(self.local.scale) else 0.0
+        own = max(tol.max_move * bbox_diagonal(v0), tol.coarse_move * med)
+        self.cap = min(own, tol.max_displacement * diagonal)
+        self.strength = strength
+        self.margin = strength  # smaller when the RMS budget asks for it
+
+    def _geometric(self) -> Analysis | None:
+        if self.placement is None:
+            return None
+        got = analyse_geometric(self.v, self.adj, self.key, [self.method], self.placement, self.tol)
+        return got[self.method]
+
+    def round(self, r: int, codeword: np.ndarray, local_slots: np.ndarray, rms_budget: float | None,
+              quantize: Callable[[np.ndarray, np.ndarray], np.ndarray] | None) -> bool:
+        """Move this round's carriers that read wrong or too close; False when none needed to."""
+        L = len(codeword)
+        a, g = self.local, self.geo
+        in_g = np.zeros(len(self.v), bool)
+        # (analysis, bits, carriers it may move): the geometric layer first (it reads a vertex
+        # that is a carrier of both layers)
+        layers: list[tuple[Analysis, np.ndarray, np.ndarray]] = []
+        if g is not None and len(g.carriers):
+            in_g[g.carriers] = True
+            layers.append((g, codeword[(g.slot_hash % np.uint64(L)).astype(np.int64)],
+                           np.ones(len(g.carriers), bool)))
+        layers.append((a, codeword[local_slots], ~in_g[a.carriers]))
+        limit = self.margin if r == 1 else 0.5 * self.margin
+        todo = []
+        for b, bits, free in layers:
+            want = np.where(bits == 0, 1.0, -1.0)
+            bad = (want * b.z < limit) & ~self.skipped[b.carriers] & ~self.held[b.carriers] & free
+            if bad.any():
+                todo.append((b, bits, bad))
+        if not todo:
+            return False
+        if g is not None and r > SETTLE_AFTER and \
+                sum(int(t[2].sum()) for t in todo) <= SETTLED * (len(a.carriers) + len(g.carriers)):
+            # the geometric choice of a few cells flips between two vertices with every move of
+            # their neighbours: what is left is too little to matter (the caller verifies)
+            return False
+
+        def at(m: float) -> list[_Moves]:
+            return [_moves(self.method, b, bits, bad, self.v, self.v0, m, self.cap, self.tol)
+                    for b, bits, bad in todo]
+
+        moves = at(self.margin)
+        if r == 1 and rms_budget is not None:
+            moves = self._within(moves, at, rms_budget)
+        idx = np.concatenate([mv.idx for mv in moves])
+        new = np.concatenate([mv.new for mv in moves])
+        ok = np.concatenate([mv.ok for mv in moves])
+        over = np.concatenate([mv.over for mv in moves])
+        self.held[idx[ok & over]] = True
+        self.skipped[idx[~ok]] = True
+        placed = new[ok] if quantize is None else quantize(idx[ok], new[ok])
+        self.v[idx[ok]] = placed
+        self._reread(idx[ok])
+        return True
+
+    def _within(self, moves: list[_Moves], at: Callable[[float], list[_Moves]],
+                budget: float) -> list[_Moves]:
+        """The first round's moves within the RMS budget: one margin for every carrier of the mesh,
+        the largest that keeps it (down to MIN_MARGIN x strength); what still does not fit leaves
+        out the largest moves (the code absorbs them)."""
+        room = (budget * self.diag) ** 2 * len(self.v)
+
+        def cost(ms: list[_Moves]) -> float:
+            return sum(float((mv.eff[mv.ok] ** 2).sum()) for mv in ms)
+
+        if cost(moves) > room:
+            lo, hi = MIN_MARGIN * self.strength, self.margin
+            for _ in range(MARGIN_STEPS):
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if cost(at(mid)) <= room else (lo, mid)
+            self.margin = lo
+            moves = at(lo)
+        effs = np.concatenate([mv.eff[mv.ok] for mv in moves])
+        self.cap = min(self.cap, budget_cap(effs, np.sqrt(room / max(len(self.v), 1)), len(self.v)))
+        for mv in moves:
+            mv.ok &= mv.eff <= self.cap
+        return moves
+
+    def _reread(self, moved_idx: np.ndarray) -> None:
+        """Statistics after the vertices ``moved_idx`` moved: the whole analysis of a regular mesh
+        (its labels depend on positions); else the moved carriers' statistics, the boundaries of
+        the carriers next to a moved geometric carrier, and the geometric carriers chosen again."""
+        if self.labels.regular:
+            self.labels = vertex_labels(self.v, self.adj, self.labels)
+            self.local = analyse(self.v, self.faces, self.key, self.method, adj=self.adj, labels=self.labels,
+                                 tol=self.tol)
+        else:
+            a = self.local
+            moved = np.zeros(len(self.v), bool)
+            moved[moved_idx] = True
+            mine = np.flatnonzero(moved[a.carriers])
+            a.z[mine] = statistic(self.method, self.v[a.carriers[mine]], a.mu[mine], a.axes[mine],
+                                  a.lam[mine], a.scale[mine], self.tol)
+            if self.geo is not None:
+                _refresh(a, self.v, self.adj, _touched(a, self.adj, moved), self.method, self.tol)
+        if self.geo is not None:
+            self.geo = self._geometric()
 
 
 def _reselect(vs: list[np.ndarray], faces: list[np.ndarray], adjs: list[Adjacency], labels: list[Labels],

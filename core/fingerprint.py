@@ -202,8 +202,10 @@ def codeword_votes(analyses: list[Analysis], key: str | bytes, length: int,
     """
     out = np.zeros((len(variants), length))
     cache: dict = {}
-    for r, adaptive in enumerate(variants):
-        slots, raw, sign = _votes(analyses, _soft_values(analyses, adaptive), key, length, False, cache)
+    # every variant's values kept alive: _votes caches the centred votes under their id()
+    values = [_soft_values(analyses, adaptive) for adaptive in variants]
+    for r, vals in enumerate(values):
+        slots, raw, sign = _votes(analyses, vals, key, length, False, cache)
         if len(slots):
             # each bit's vote sum in units of its own spread (sum / sqrt(n)): on meshes with
             # repeated labels a few bits gather hundreds of carriers and would outweigh the rest

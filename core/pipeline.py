@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 
 from core import gf2
-from core.analysis import Analysis, analyse_methods, prepare
+from core.analysis import Analysis, analyse_geometric, analyse_methods, prepare
 from core.coding import (
     COMPACT_BELOW,
     COMPACT_BITS,
@@ -21,12 +21,21 @@ from core.coding import (
     compact_whitening,
     encode,
 )
-from core.detection import compact_slots, detect_analyses
+from core.detection import (
+    BOTH,
+    CONNECTIVITY,
+    GEOMETRY,
+    agreement,
+    compact_slots,
+    detect_analyses,
+    detect_views,
+)
 from core.embedding import EmbedStats, Quantize, embed_parts
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, FORMATS, Limits, MeshDocument, MeshPart, read_mesh, weld
+from core.geosync import CARRIER_SHARE, Placement, detect_placements, embed_placement, geometric_carriers
 from core.hashing import derive
-from core.mesh import Adjacency, bbox_diagonal
+from core.mesh import Adjacency, adjacency, bbox_diagonal
 from core.options import DEFAULT_METHOD, METHODS, Options
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
 from core.resample import undo_subdivision
@@ -39,15 +48,14 @@ CAPACITY_MARGIN = 1.5
 #: displacement caps tried in turn (multiples of the defaults in core.tolerances.Tolerances; the
 #: ceiling ``max_displacement`` is never widened)
 CAP_FACTORS = (1.0, 2.0, 4.0)
-#: at the default strength the RMS budget is kept only while it leaves at most this share of the
-#: carriers unmoved: above it the mark reads back untouched but not after noise or smoothing
-MAX_BUDGET_SKIP = 0.2
-#: RMS budgets (of the bounding-box diagonal) tried in turn at the default strength: the
-#: target first, then wider ones, so that a mesh the target would leave with more than
-#: MAX_BUDGET_SKIP of its carriers unmoved gets the smallest of them that does not, before no
-#: budget at all (rocker-arm ellipsoids 6.0e-4 -> 4.0e-4, planes 4.1e-4 -> 3.0e-4, beetle and
-#: bunny ellipsoids 4.9 and 4.1e-4 -> 3.0e-4; core/README.md, distortion budget)
-RMS_BUDGETS = (TOL.rms_budget, 1.5 * TOL.rms_budget, 2.0 * TOL.rms_budget)
+#: RMS budgets (of the bounding-box diagonal) tried in turn at the default strength: the target,
+#: and no budget only for a mesh on which the target does not even read back untouched (coarse
+#: models); core/README.md, distortion budget
+RMS_BUDGETS = (TOL.rms_budget,)
+#: the first round of an embedding aims at this share of the budget (the rounds after it, which
+#: read again after rounding and choose the geometric cells again, add a few percent: 2-7 % on
+#: the shared meshes), and aims lower, at most BUDGET_RETRIES times, while the result exceeds it
+BUDGET_AIM, BUDGET_RETRIES = 0.95, 3
 
 
 #: a face has no area when |cross| <= this x (bounding-box diagonal)^2 (collinear corners)
@@ -125,14 +133,74 @@ def _usable_parts(doc: MeshDocument) -> list[int]:
 def _analyses(doc: MeshDocument, parts: list[int], key: str | bytes, methods: Sequence[str],
               progress: Progress = _no_progress) -> dict[str, list[Analysis]]:
     """Every part analysed under ``key``; ``progress`` by vertices analysed."""
+    return _layers(doc, parts, key, methods, progress)[0]
+
+
+def _layers(doc: MeshDocument, parts: list[int], key: str | bytes, methods: Sequence[str],
+            progress: Progress = _no_progress) -> tuple[dict[str, list[Analysis]], list[Adjacency]]:
+    """Every part's connectivity carriers analysed under ``key``, and each part's adjacency;
+    ``progress`` by vertices analysed."""
     out: dict[str, list[Analysis]] = {m: [] for m in methods}
+    adjs = []
     total, done = sum(len(doc.parts[i].vertices) for i in parts) or 1, 0
     for i in parts:
-        for m, a in analyse_methods(doc.parts[i].vertices, doc.parts[i].faces, key, methods).items():
+        v, f = doc.parts[i].vertices, doc.parts[i].faces
+        adj = adjacency(f, len(v))
+        for m, a in analyse_methods(v, f, key, methods, adj=adj).items():
             out[m].append(a)
+        adjs.append(adj)
         done += len(doc.parts[i].vertices)
         progress(done / total)
-    return out
+    return out, adjs
+
+
+class _GeometricViews:
+    """The geometric carriers a detection reads, made on first use: each part's placements
+    (:func:`core.geosync.detect_placements`, none without a frame), then the analyses at the first
+    one (the embedder's, on an untouched file) or at the one whose votes agree best within slots
+    (:func:`core.detection.agreement`) among all of them.  Parts with fewer than
+    :data:`GEOMETRIC_PART_MIN` geometric carriers are left out."""
+
+    def __init__(self, doc: MeshDocument, parts: list[int], adjs: list[Adjacency], key: str | bytes,
+                 methods: Sequence[str], lengths: list[int]) -> None:
+        self.doc, self.parts, self.adjs, self.key = doc, parts, adjs, key
+        self.methods, self.lengths = methods, lengths
+        self._places: list[list[Placement]] | None = None
+        self._first: dict[str, list[Analysis]] | None = None
+
+    def places(self) -> list[list[Placement]]:
+        if self._places is None:
+            self._places = [detect_placements(self.doc.parts[i].vertices, self.doc.parts[i].faces, adj,
+                                              self.key) for i, adj in zip(self.parts, self.adjs, strict=True)]
+        return self._places
+
+    def view(self, best: bool) -> dict[str, list[Analysis]]:
+        if not best and self._first is not None:
+            return self._first
+        out: dict[str, list[Analysis]] = {m: [] for m in self.methods}
+        for i, adj, places in zip(self.parts, self.adjs, self.places(), strict=True):
+            v = self.doc.parts[i].vertices
+            chosen, score = None, -np.inf
+            for p in places if best else places[:1]:
+                got = analyse_geometric(v, adj, self.key, self.methods, p)
+                if len(next(iter(got.values())).carriers) < GEOMETRIC_PART_MIN:
+                    continue
+                s = max(agreement([a], self.lengths) for a in got.values()) if best else 0.0
+                if s > score:
+                    chosen, score = got, s
+            if chosen is not None:
+                for m in self.methods:
+                    out[m].append(chosen[m])
+        if not best:
+            self._first = out
+        return out
+
+
+def _codeword_lengths(expected: np.ndarray | None) -> list[int]:
+    """Codeword lengths a detection tries (the expected payload's, else every length's and the key code's)."""
+    if expected is not None:
+        return [codeword_length(len(expected))]
+    return sorted({codeword_length(n) for n in range(1, MAX_PAYLOAD_BITS + 1)} | {codeword_length(None)})
 
 
 def _reads_back(check: DetectResult, bits: np.ndarray | None) -> bool:
@@ -331,6 +399,7 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
     meshes = [(doc.parts[i].vertices, doc.parts[i].faces) for i in parts]
     diagonal = bbox_diagonal(np.concatenate([p.vertices for p in doc.parts])) or 1.0
     prepared = prepare([v for v, _ in meshes], [f for _, f in meshes])
+    placements = _placements(meshes, prepared, key, L)
     report(Milestones.PREPARED)
     # attempt k (a retry is for coarse meshes and rounding) moves progress over the k-th half of
     # what is left between MOVED and VERIFIED: the first attempt gets half, and it never goes back
@@ -343,10 +412,18 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
     too_few = False  # too few carriers for the codeword: no embedding was tried, nothing else is
     for attempt, (budget, factor, dec) in enumerate(tries):
         tol = _capped(factor)
-        vs, stats, final = embed_parts(meshes, key, codeword, method, s, tol=tol, prepared=prepared,
-                                       quantize=_part_quantizer(doc, parts, dec), rms_budget=budget,
-                                       diagonal=diagonal)
-        new = _with_parts(doc, parts, vs)
+        aim = None if budget is None else BUDGET_AIM * budget
+        for _ in range(BUDGET_RETRIES + 1):
+            vs, stats, final = embed_parts(meshes, key, codeword, method, s, tol=tol, prepared=prepared,
+                                           quantize=_part_quantizer(doc, parts, dec), rms_budget=aim,
+                                           diagonal=diagonal, placements=placements)
+            new = _with_parts(doc, parts, vs)
+            if budget is None or aim is None:
+                break
+            rms = _distortion(doc, new, {}, hausdorff=False)[1]
+            if rms <= budget:
+                break
+            aim *= 0.98 * budget / rms
         carriers = sum(st.carriers for st in stats)
         skipped = sum(st.skipped for st in stats)
         report(attempt_start(attempt))
@@ -354,12 +431,12 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
             too_few = True
             refusal = (f"too little capacity: {carriers} carriers for a {L}-bit codeword "
                        f"({'32-bit key-derived code' if bits is None else f'{len(bits)}-bit payload'} with "
-                       f"{'' if bits is None else 'CRC-32 and '}Hamming(7,4)) at strength {s}"
+                       f"{'' if bits is None else 'CRC-32 and '}a rate-1/2 convolutional code) "
+                       f"at strength {s}"
                        + (_no_carrier_hint(carriers) or _more_carriers_hint(bits)), carriers)
             break
         verify = _scaled(report, attempt_start(attempt), attempt_start(attempt + 1))
-        ok = budget is None or skipped <= MAX_BUDGET_SKIP * carriers
-        if ok and _verified(final, key, method, bits, L, verify):
+        if _verified(final, key, method, bits, L, verify):
             break
         if attempt == len(tries) - 1:
             refusal = ("the watermark could not be made readable on this mesh within the displacement "
@@ -377,7 +454,8 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
                                      lambda dec: _part_quantizer(doc, parts, dec),
                                      COMPACT_ROUNDS if compact_rounds is None else compact_rounds)
         if compact is None:
-            tried = (f"; the compact {COMPACT_BITS}-bit frame (CRC-32, no Hamming) did not read back either"
+            tried = (f"; the compact {COMPACT_BITS}-bit frame (CRC-32, no error correction) did not read "
+                     "back either"
                      if fallback else "")
             hint = _what_fits(doc, options) if probe and (fallback or not too_few) else ""
             raise CapacityError(refusal[0] + tried + hint,
@@ -387,12 +465,16 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
         carriers = sum(st.carriers for st in stats)
         skipped = sum(st.skipped for st in stats)
     moved, rms, mx, haus = _distortion(doc, new, {i: prepared[k][0] for k, i in enumerate(parts)})
+    geo = [st.geometric for st in stats if st.geometric is not None and len(st.geometric.carriers)]
+    layers = [CONNECTIVITY] + ([GEOMETRY] if geo and _reads_back(
+        detect_views([(GEOMETRY, {method: geo})], key, bits), bits) else [])
     report(Milestones.MEASURED)
     rep = EmbedReport(method=method, strength=s, payload_bits=KEY_CODE_BITS if bits is None else len(bits),
                       key_derived=bits is None, codeword_bits=L, carriers=carriers,
                       copies=round(carriers / L, 3), skipped=skipped, vertices_moved=moved,
                       rms_displacement=rms, max_displacement=mx, hausdorff=haus, decimals=dec,
-                      cap_factor=factor, parts=_part_info(doc, parts, stats))
+                      cap_factor=factor, parts=_part_info(doc, parts, stats), layers=layers,
+                      geometric_carriers=sum(len(g.carriers) for g in geo))
     return new, rep, dec
 
 
@@ -405,13 +487,40 @@ def _capped(factor: float) -> Tolerances:
 def _verified(final: list[Analysis], key: str | bytes, method: str, bits: np.ndarray | None, L: int,
               verify: Progress = _no_progress) -> bool:
     """The embedder's last analysis reads the payload back, and so does every part with room for a
-    copy of its own (a mesh extracted from the file)."""
+    copy of its own (a mesh extracted from the file).  (The geometric layer alone is checked for
+    the report, :func:`_embed_doc`: without it the file still reads.)"""
     groups = [final] + [[a] for a in final if len(final) > 1 and own_copy(a.slot_hash, L)]
     for k, group in enumerate(groups):
         if not _reads_back(detect_analyses({method: group}, key, bits), bits):
             return False
         verify((k + 1) / len(groups))
     return True
+
+
+#: a mesh gets geometric carriers when it has at least this many (a small part of a scene gets none),
+#: and a file when they are at least GEOMETRIC_PER_SLOT times the codeword length
+GEOMETRIC_PART_MIN = 64
+GEOMETRIC_PER_SLOT = 8
+#: a file of fewer vertices cannot have that many (geometric carriers are about CARRIER_SHARE of the
+#: usable vertices, and the shortest codeword is a 1-bit payload's): neither the embedder nor the
+#: detector looks for them
+GEOMETRIC_MIN_VERTICES = int(np.ceil(GEOMETRIC_PER_SLOT * codeword_length(1) / CARRIER_SHARE))
+
+
+def _placements(meshes: list[tuple[np.ndarray, np.ndarray]], prepared: list[tuple[Adjacency, Labels]],
+                key: str | bytes, L: int) -> list[Placement | None]:
+    """Where each mesh's geometric carriers are, or None for a mesh without them (no frame, too
+    few carriers, or too few in the whole file for a codeword of ``L`` bits)."""
+    out: list[Placement | None] = []
+    total = 0
+    if sum(len(v) for v, _ in meshes) < GEOMETRIC_MIN_VERTICES:
+        return [None] * len(meshes)
+    for (v, f), (adj, _) in zip(meshes, prepared, strict=True):
+        p = embed_placement(v, f, adj, key)
+        count = 0 if p is None else len(geometric_carriers(v, adj, p.frame, p.axes, p.rung, key)[0])
+        out.append(p if count >= GEOMETRIC_PART_MIN else None)
+        total += count if count >= GEOMETRIC_PART_MIN else 0
+    return out if total >= GEOMETRIC_PER_SLOT * L else [None] * len(meshes)
 
 
 #: embeddings of the compact frame per displacement cap, each with the constraints of the last slot maps
@@ -586,26 +695,47 @@ def detect_file(data: bytes, key: str | bytes, *, filename: str | None = None, p
 def _detect_doc(doc: MeshDocument, options: Options, analysed: Progress = _no_progress) -> DetectResult:
     """``analysed`` follows the analysis of the parts (0 to 1); decoding comes after.
 
-    When the file does not read and some of its meshes are one 1-to-4 subdivision step of a coarser
-    mesh (midpoint or Loop, :func:`core.resample.undo_subdivision`), the coarse meshes are read as
-    a second view; a detection there reports ``resampled`` and a false-positive figure doubled (the
-    union bound over both views)."""
+    The views, in turn: both layers' carriers together, the connectivity layer alone (a crop moves
+    the surface's frame), the geometric layer alone at its best placement (a re-triangulation loses
+    the connectivity labels).  When the file does not read and some of its meshes are one
+    subdivision step of a coarser mesh (:func:`core.resample.undo_subdivision`), the coarse meshes
+    are read as a second file; a detection there reports ``resampled`` and a false-positive figure
+    doubled (the union bound over both)."""
     key = options.secret
     parts = _usable_parts(doc)
-    analyses = _analyses(doc, parts, key, options.detect_methods, analysed)
-    found = detect_analyses(analyses, key, options.payload_bits)
+    found = _read_views(doc, parts, key, options, analysed)
     if found.detected:
         return found
     coarse = _coarsened(doc, parts)
     if coarse is None:
         return found
     doc2, scheme = coarse
-    second = detect_analyses(_analyses(doc2, list(range(len(doc2.parts))), key, options.detect_methods), key,
-                             options.payload_bits)
+    second = _read_views(doc2, list(range(len(doc2.parts))), key, options)
     if not second.detected:
         return found
     return replace(second, resampled=scheme,
                    false_positive_probability=min(1.0, 2.0 * second.false_positive_probability))
+
+
+def _read_views(doc: MeshDocument, parts: list[int], key: str | bytes, options: Options,
+                analysed: Progress = _no_progress) -> DetectResult:
+    """Detection over the views of :func:`_detect_doc` for one file's usable ``parts``: the
+    connectivity layer first (what an untouched file reads, without the cost of the surface's
+    frame), then both layers together and the geometric layer alone, made only when it did not
+    read.  The false-positive figure counts the geometric views whenever the file is large enough
+    to have had geometric carriers (:data:`GEOMETRIC_MIN_VERTICES`), whether or not it has them."""
+    methods, expected = options.detect_methods, options.payload_bits
+    local, adjs = _layers(doc, parts, key, methods, analysed)
+    if sum(len(doc.parts[i].vertices) for i in parts) < GEOMETRIC_MIN_VERTICES:
+        return detect_views([(CONNECTIVITY, local)], key, expected)
+    geo = _GeometricViews(doc, parts, adjs, key, methods, _codeword_lengths(expected))
+
+    def both() -> dict[str, list[Analysis]]:
+        first = geo.view(best=False)
+        return {m: local[m] + first[m] for m in methods} if any(first.values()) else {}
+
+    return detect_views([(CONNECTIVITY, local), (BOTH, both), (GEOMETRY, lambda: geo.view(best=True))], key,
+                        expected)
 
 
 def _coarsened(doc: MeshDocument, parts: list[int]) -> tuple[MeshDocument, str] | None:

@@ -42,6 +42,10 @@ class EmbedReport(_Report):
     parts: list[dict[str, Any]] = field(default_factory=list)
     skipped_elements: int = 0  # non-triangle elements of the file, carried through untouched
     reencoded: list[str] = field(default_factory=list)  # compressed encodings re-encoded on write
+    #: the layers that read the payload alone: "connectivity" (always; crops, parts of a scene) and
+    #: "geometry" when the geometric layer does too (re-triangulations)
+    layers: list[str] = field(default_factory=lambda: ["connectivity"])
+    geometric_carriers: int = 0  # carriers of the geometric layer (all parts)
 
 @dataclass(frozen=True)
 class DetectResult(_Report):
@@ -64,6 +68,11 @@ class DetectResult(_Report):
     #: "midpoint", "loop" or "sqrt3" when the mark was read on the mesh one subdivision step down
     #: (the file had been subdivided after marking), else None
     resampled: str | None = None
+    #: which carriers read the mark: "both" layers together, the "connectivity" layer alone (a
+    #: cropped piece), or the "geometry" layer alone (a re-triangulated mesh); None when not read
+    layer: str | None = None
+    #: carriers of the geometric layer among ``carriers``
+    geometric_carriers: int = 0
 
 @dataclass(frozen=True)
 class CapacityReport(_Report):
@@ -72,7 +81,7 @@ class CapacityReport(_Report):
     carriers: int
     max_payload_bits: int            # largest payload (carriers >= 1.5 x its codeword) verified to embed
     copies_of_default: float         # copies of the key-derived 32-bit code
-    codeword_bits_default: int       # 56: the key-derived code with Hamming(7,4)
+    codeword_bits_default: int       # 76: the key-derived code, convolutionally coded
     expected_rms_displacement: float
     expected_max_displacement: float
     payload_bits_by_copies: dict[str, int] = field(default_factory=dict)  # copies -> largest payload

@@ -32,11 +32,11 @@ def test_embed_then_detect_round_trip(client, name, payload):
 
 
 def test_a_mesh_too_coarse_for_the_method_is_refused_with_what_fits(client):
-    """Spot (2,930 vertices) with ellipsoids needs moves past the displacement ceiling for a 64-bit
-    payload (up to 48 bits fit in the compact frame): 422, and the detail names the method that
-    fits, which then embeds."""
+    """Spot (2,930 vertices) with ellipsoids needs moves past the displacement ceiling for a 192-bit
+    payload under this key (128 bits fit since the convolutional code, 48 with Hamming(7,4) before):
+    422, and the detail names the method that fits, which then embeds."""
     data = shared_mesh("spot.obj")
-    payload = "1011001110001111" * 4
+    payload = "1011001110001111" * 12
     body = assert_problem(embed(client, "spot.obj", data, payload=payload), 422, "too-little-capacity")
     assert "ceiling" in body["detail"] and "method=planes" in body["detail"], body
     assert embed(client, "spot.obj", data, payload=payload, method="planes").status_code == 200

@@ -23,6 +23,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.problems import CORE_ERRORS
+from core.coding import codeword_length
 from tests.app import hostile as H
 from tests.app.conftest import assert_problem, make_client, wait_job
 from tests.core.formats import helpers as F
@@ -190,7 +191,7 @@ def _drum(n: int = 255) -> tuple[np.ndarray, list[list[int]]]:
 def test_ply_face_lists_of_255_entries(client):
     verts, faces = _drum(255)
     for data in (F.ply_binary(verts, faces), F.ply_ascii(verts, faces)):
-        # a legal file: fan-triangulated, then too coarse for the 56-bit code
+        # a legal file: fan-triangulated, then too coarse for the key-derived code
         body = refused(post(client, "drum.ply", data), 422, "too-little-capacity")
         assert body["carriers"] < body["needed"]
         report = post(client, "drum.ply", data, route="/v1/capacity")
@@ -329,7 +330,7 @@ def test_meshes_that_parse_but_cannot_carry_a_mark(client, name, data, slug, rea
     body = refused(post(client, name, data), 422, slug)
     assert reason in body["detail"], body["detail"]
     if slug == "too-little-capacity":
-        assert body["carriers"] == 0 and body["needed"] == 56
+        assert body["carriers"] == 0 and body["needed"] == codeword_length(None)
 
 
 _OVERFLOW_OBJ = b"v 0 0 0\nv 1e200 0 0\nv 0 1e200 0\nv 0 0 1e200\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"

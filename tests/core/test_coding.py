@@ -1,9 +1,8 @@
-"""core.coding: Hamming(7,4), CRC-32 framing, keyed whitening, soft decoding, tail probabilities."""
+"""core.coding: CRC-32 framing, the convolutional code, keyed whitening, soft decoding, tail probabilities."""
 
 from __future__ import annotations
 
 import zlib
-from itertools import product
 
 import numpy as np
 import pytest
@@ -12,24 +11,20 @@ from core import coding
 from core.coding import KEY_CODE_BITS
 
 
-def test_hamming_codeword_is_data_then_parity() -> None:
-    assert coding.hamming_encode(np.array([1, 0, 1, 1])).tolist() == [1, 0, 1, 1, 0, 1, 0]
-    assert coding.hamming_encode(np.array([1])).tolist() == [1, 0, 0, 0, 1, 1, 0]  # zero-padded nibble
-
-
-def test_every_single_error_of_every_codeword_is_corrected() -> None:
-    for nibble in product([0, 1], repeat=4):
-        word = coding.hamming_encode(np.array(nibble))
-        for flipped in range(7):
-            received = word.copy()
-            received[flipped] ^= 1
-            llr = 1.0 - 2.0 * received  # hard votes: +1 reads 0
-            assert coding.ml_bits(llr).tolist() == list(nibble)
-
-
 def test_lengths_of_the_frames() -> None:
-    assert coding.codeword_length(None) == 7 * KEY_CODE_BITS // 4 == 56
-    assert [coding.codeword_length(n) for n in (1, 4, 5, 256)] == [63, 63, 70, 504]
+    """Payload + CRC-32, zero-padded to a nibble, + 6 tail bits, at rate 1/2."""
+    assert coding.codeword_length(None) == 2 * (KEY_CODE_BITS + 6) == 76
+    assert [coding.codeword_length(n) for n in (1, 4, 5, 32, 256)] == [2 * 42, 2 * 42, 2 * 46, 2 * 70, 2 * 294]
+    assert [coding.message_length(n) for n in (1, 4, 5, 256)] == [36, 36, 40, 288]
+
+
+def test_the_message_is_payload_crc_and_zero_padding() -> None:
+    payload = np.array([1, 0, 1, 1, 1], np.uint8)
+    msg = coding.message(payload)
+    assert len(msg) == coding.message_length(5) == 40
+    assert msg[:5].tolist() == payload.tolist()
+    assert msg[5:37].tolist() == coding.crc_bits(payload).tolist()
+    assert not msg[37:].any()
 
 
 def test_crc_covers_the_length_and_the_bits() -> None:
@@ -42,17 +37,17 @@ def test_crc_covers_the_length_and_the_bits() -> None:
 def test_whitened_codeword_decodes_to_the_key_code() -> None:
     word = coding.encode("key", None)
     plain = word ^ coding.whitening("key", len(word))
-    assert coding.ml_bits(1.0 - 2.0 * plain)[:KEY_CODE_BITS].tolist() == coding.key_code("key").tolist()
-    assert not np.array_equal(coding.whitening("key", 56), coding.whitening("other", 56))
-    assert not coding.whitening("key", 56).flags.writeable
+    assert coding.ml_messages([1.0 - 2.0 * plain])[0].tolist() == coding.key_code("key").tolist()
+    assert not np.array_equal(coding.whitening("key", 76), coding.whitening("other", 76))
+    assert not coding.whitening("key", 76).flags.writeable
     code = coding.key_code("k")
     assert coding.bits_to_str(code) == coding.bits_to_str(coding.key_code(b"k")) and len(code) == 32
 
 
 def test_soft_decoding_reports_how_sure_it_is() -> None:
-    sure = coding.soft_decode(np.full(7, 5.0))
-    assert sure.bits.tolist() == [0, 0, 0, 0] and (sure.confidence > 0.999).all()
-    unsure = coding.soft_decode(np.zeros(7))
+    sure = coding.soft_decode(np.full(coding.codeword_length(None), 5.0))
+    assert sure.bits.tolist() == [0] * KEY_CODE_BITS and (sure.confidence > 0.999).all()
+    unsure = coding.soft_decode(np.zeros(coding.codeword_length(None)))
     assert np.allclose(unsure.confidence, 0.5)
 
 

@@ -60,7 +60,7 @@ def test_the_carrier_error_rate_comes_from_agreement_within_slots(flip: float) -
     """Votes of one slot agree as often as the error rate allows; the estimate does not depend on
     which codeword is decoded."""
     rng = np.random.default_rng(6)
-    length, k = 56, 5600
+    length, k = 76, 7600
     slots = rng.integers(0, length, k)
     truth = 1.0 - 2.0 * rng.integers(0, 2, length)
     raw = truth[slots] * np.where(rng.random(k) < flip, -1.0, 1.0)
@@ -82,9 +82,9 @@ def bits(values: np.ndarray) -> str:
 
 def test_scale_weighted_votes_read_absolute_errors(monkeypatch: pytest.MonkeyPatch) -> None:
     """Carriers whose rings differ in size by 100x, under an error of the same absolute size on
-    every vertex (quantisation, fixed-amplitude noise): ``z`` is in units of the ring, so small
-    rings carry most of the error. The scale-weighted variant reads payloads that the unweighted
-    ones lose, and never a wrong one."""
+    every vertex (quantisation, fixed-amplitude noise) on top of one relative to the ring: ``z`` is
+    in units of the ring, so small rings carry most of the error. The scale-weighted variant reads
+    payloads that the unweighted ones lose (15 of 20 against 5 when measured), and never a wrong one."""
     payload = np.array([int(c) for c in "1011001110001111"], np.uint8)
     word = encode(KEY, payload)
 
@@ -94,7 +94,8 @@ def test_scale_weighted_votes_read_absolute_errors(monkeypatch: pytest.MonkeyPat
         hashes = rng.integers(0, 2**63, k, dtype=np.uint64)
         slots = assign_slots([hashes], len(word))[0]
         s = np.exp(rng.uniform(np.log(0.1), np.log(10.0), k))
-        z = np.where(word[slots] == 0, 1.0, -1.0) * 0.07 + rng.normal(0.0, 0.45, k) / s
+        z = (np.where(word[slots] == 0, 1.0, -1.0) * 0.07 + rng.normal(0.0, 0.2, k)
+                 + rng.normal(0.0, 0.3, k) / s)
         empty = np.zeros((k, 3))
         a = Analysis(np.arange(k), hashes, z, empty, np.zeros((k, 3, 3)), empty, s, False)
         res = detect_analyses({"planes": [a]}, KEY)
@@ -152,3 +153,20 @@ def test_the_compact_frame_is_found_below_1024_carriers_and_counted_in_the_false
     assert not detect_analyses({"planes": [compact_carriers(payload, 120, 1)]}, "another key").detected
     many = detect_analyses({"planes": [carriers_reading(encode(KEY, payload), 1100, 4)]}, KEY)
     assert many.detected and many.false_positive_probability == pytest.approx(1.781e-7, rel=1e-3)
+
+
+def test_cached_votes_follow_the_values_not_their_id() -> None:
+    """``_votes`` caches centred votes per list of values; a list freed by its caller can hand its
+    id() to the next one (tracing once read the hard votes' cache for the adaptive ones): an entry
+    whose list is not the one asked for is computed again."""
+    from core.detection import _votes
+
+    rng = np.random.default_rng(9)
+    k = 200
+    hashes = rng.integers(0, 2**63, k, dtype=np.uint64)
+    empty = np.zeros((k, 3))
+    a = Analysis(np.arange(k), hashes, rng.normal(size=k), empty, np.zeros((k, 3, 3)), empty, np.ones(k), False)
+    old, new = [np.ones(k)], [np.arange(k, dtype=np.float64)]
+    cache: dict = {("centred", id(new)): (old, np.zeros(k))}  # what an id() reused after a free leaves
+    _, raw, _ = _votes([a], new, KEY, 76, None, cache)
+    assert np.allclose(raw, new[0] - new[0].mean())

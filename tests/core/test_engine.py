@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from core.api import detect_mesh, embed_mesh
-from core.coding import key_code
+from core.coding import codeword_length, key_code
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from tests.core.meshes import irregular_sphere, similarity, suggested
 
@@ -44,7 +44,7 @@ def test_embed_detect_exact_and_invariant(seed: int, payload: str, key: str, met
 def test_key_derived_code_is_the_default(method: str) -> None:
     v, f = irregular_sphere(2000, 1)
     marked, report = embed_mesh(v, f, "paper mode", method=method)
-    assert report.key_derived and report.payload_bits == 32 and report.codeword_bits == 56
+    assert report.key_derived and report.payload_bits == 32 and report.codeword_bits == codeword_length(None)
     res = detect_mesh([(marked, f)], "paper mode", method=method)
     assert res.detected and res.key_derived
     assert res.payload == "".join(map(str, key_code("paper mode")))

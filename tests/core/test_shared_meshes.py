@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from core.api import Options, capacity, capacity_file, detect_file, detect_mesh, embed_file
-from core.coding import key_code
+from core.coding import codeword_length, key_code
 from core.errors import CapacityError
 from core.formats import read_mesh
 from tests.conftest import SHARED_MESHES, shared_mesh_path
@@ -61,22 +61,25 @@ def test_round_trip_exact_and_invariant(name: str, method: str) -> None:
 
 def test_sink_carries_the_papers_code() -> None:
     """Table I on the paper's own 'Sink' (674 vertices, 1,068 faces; paper: 98 carriers / 2 copies
-    with ellipsoids, 66 / 1 with planes).  Within the displacement ceiling `planes` carries the
-    key-derived code; `ellipsoids` is refused and the refusal names `planes`."""
+    with ellipsoids, 66 / 1 with planes).  Within the displacement ceiling both methods carry the
+    key-derived code (with the Hamming(7,4) code that issue 14's convolutional one replaced,
+    `ellipsoids` was refused)."""
     data = shared_mesh_path("sink.3ds").read_bytes()
     marked = embed_file(data, "sink", filename="sink.3ds", method="planes")
-    assert marked.report.key_derived and marked.report.codeword_bits == 56
+    assert marked.report.key_derived and marked.report.codeword_bits == codeword_length(None)
     assert marked.report.copies >= 1.0
     assert marked.report.max_displacement <= 3e-3 + 1e-7  # + the file's float32 rounding
     res = detect_file(marked.data, "sink", filename="sink.3ds")
     assert res.detected and res.key_derived and res.bit_errors == 0
-    with pytest.raises(CapacityError, match="method=planes"):
-        embed_file(data, "sink", filename="sink.3ds", method="ellipsoids")
+    marked = embed_file(data, "sink", filename="sink.3ds", method="ellipsoids")
+    assert marked.report.max_displacement <= 3e-3 + 1e-7
+    res = detect_file(marked.data, "sink", filename="sink.3ds")
+    assert res.detected and res.key_derived and res.bit_errors == 0 and res.method == "ellipsoids"
 
 
 @pytest.mark.parametrize("key", ["sink", "another sink key", "k3"])
 def test_sink_refusals_of_a_32_bit_payload_say_what_fits(key: str) -> None:
-    """A 32-bit payload (112-bit codeword) on the Sink, whose ~110-120 carriers depend on the key:
+    """A 32-bit payload (140-bit codeword) on the Sink, whose ~110-120 carriers depend on the key:
     it embeds, or the refusal gives the reason (too few carriers, or too many over the ceiling)
     and what does fit, which then embeds and reads back."""
     data = shared_mesh_path("sink.3ds").read_bytes()
@@ -87,7 +90,7 @@ def test_sink_refusals_of_a_32_bit_payload_say_what_fits(key: str) -> None:
         msg = str(exc)
         shorter = re.search(r"a (\d+)-bit payload reads back with method=(\w+)", msg)
         if "too little capacity" in msg:
-            assert re.search(r"\d+ carriers for a 112-bit codeword", msg), msg
+            assert re.search(rf"\d+ carriers for a {codeword_length(32)}-bit codeword", msg), msg
             return
         assert "ceiling" in msg and (suggested(msg) or shorter), msg
         if suggested(msg):
@@ -174,14 +177,14 @@ def test_capacity_with_the_key_offers_only_payloads_that_embed(method: str) -> N
 
 @pytest.mark.parametrize("key", ["sink", "another sink key", "k3", "key-6"])
 def test_sink_carries_a_32_bit_payload_of_the_users_choosing(key: str) -> None:
-    """Issue 14: the paper's Sink (~106-122 carriers, too few for the 112-bit codeword of a 32-bit
-    payload with Hamming) carries any 32-bit payload with planes at the default strength, within
+    """Issue 14: the paper's Sink (~106-122 carriers, too few for the 140-bit codeword of a 32-bit
+    payload) carries any 32-bit payload with planes at the default strength, within
     the displacement ceiling: in the standard frame when it fits, else in the compact one ("key-6":
     108 carriers; on main every one of these was refused)."""
     data = shared_mesh_path("sink.3ds").read_bytes()
     for payload in ["0" * 32, "1" * 32, "10110011100011110000101011001010"]:
         marked = embed_file(data, key, filename="sink.3ds", payload=payload, method="planes")
-        assert marked.report.codeword_bits in (112, 128) and marked.report.payload_bits == 32
+        assert marked.report.codeword_bits in (codeword_length(32), 128) and marked.report.payload_bits == 32
         assert marked.report.max_displacement <= 3e-3 + 1e-7
         res = detect_file(marked.data, key, filename="sink.3ds")
         assert res.detected and res.crc_ok and res.payload == payload and res.method == "planes"

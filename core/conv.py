@@ -1,0 +1,151 @@
+"""The payload's error-correcting code: a rate-1/2 convolutional code, decoded soft.
+
+The code is the standard one of constraint length 7 (generators 171 and 133 octal, free distance
+10; CCSDS, 802.11).  The message is followed by 6 zero bits, so that the trellis starts and ends
+in state 0.  A detection decodes many candidate lengths at once: :func:`viterbi` runs one trellis
+per candidate in one pass over whole arrays; the accepted candidate then gets exact posteriors per
+message bit from :func:`posteriors` (log-domain BCJR).
+
+Measured against the Hamming(7,4) code it replaced (``core/README.md``, section 5): with the same
+carriers and the same 64-bit message (32-bit payload and CRC), a frame is decoded 99 % of the
+time at a slot signal-to-noise ratio of 1.5, where Hamming(7,4) with exact soft decoding failed 39 %
+of the time (it needs 2.1 for 99 %): about 2.8 dB, or as much as twice the carriers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: constraint length and generator polynomials (bit k of a generator taps the input k steps ago)
+K = 7
+GENERATORS = (0o171, 0o133)
+RATE = len(GENERATORS)
+TAIL = K - 1
+STATES = 1 << TAIL
+
+_TAPS = np.array([[(g >> k) & 1 for k in range(K)] for g in GENERATORS], np.int64)  # (RATE, K)
+# transitions into every next state ``ns``: its input bit is ``ns & 1``, its two predecessors are
+# ``ns >> 1`` and ``(ns >> 1) | 32``
+_NEXT = np.arange(STATES)
+_PRED = np.stack([_NEXT >> 1, (_NEXT >> 1) | (STATES >> 1)])  # (2, S)
+_INPUT = _NEXT & 1
+# +1/-1 sign of each output bit (+1 for 0) on the transition from predecessor p into ns
+_REG = (_PRED << 1) | _INPUT  # (2, S): the K-bit register of the transition
+_PARITY = np.array([bin(r).count("1") & 1 for r in range(1 << K)], np.uint8)
+_OUT = np.stack([_PARITY[_REG & g] for g in GENERATORS])  # (RATE, 2, S)
+_SIGN = (1.0 - 2.0 * _OUT).transpose(1, 2, 0)  # (2, S, RATE)
+# the two next states of every state, and which of their predecessors it is
+_SUCC = np.stack([(_NEXT << 1) & (STATES - 1), ((_NEXT << 1) | 1) & (STATES - 1)])
+_HIGH = _NEXT >> (TAIL - 1)
+
+
+def coded_length(n_message: int) -> int:
+    """Coded bits for a message of ``n_message`` bits (the tail included)."""
+    return RATE * (n_message + TAIL)
+
+
+def encode(message: np.ndarray) -> np.ndarray:
+    """Coded bits of ``message`` (0/1), its tail included, output bits interleaved per step."""
+    u = np.concatenate([np.asarray(message, np.int64).ravel(), np.zeros(TAIL, np.int64)])
+    out = np.empty((len(u), RATE), np.uint8)
+    for j in range(RATE):
+        out[:, j] = np.convolve(u, _TAPS[j])[: len(u)] % 2
+    return out.ravel()
+
+
+def viterbi(llrs: list[np.ndarray]) -> list[np.ndarray]:
+    """Maximum-likelihood messages of several terminated trellises at once.
+
+    Parameters
+    ----------
+    llrs : list of (RATE * (n_i + TAIL),) float64 ndarray
+        Per coded bit, a log-likelihood ratio ``log P(0) / P(1)`` (any positive scale; 0 for an
+        empty slot).
+
+    Returns
+    -------
+    list of (n_i,) uint8 ndarray
+        The message of each trellis.
+    """
+    if not llrs:
+        return []
+    steps = np.array([len(y) // RATE for y in llrs])
+    top = int(steps.max())
+    b = len(llrs)
+    y = np.zeros((b, top, RATE))
+    for i, v in enumerate(llrs):
+        y[i, : steps[i]] = np.asarray(v, np.float64).reshape(-1, RATE)
+    metric = np.full((b, STATES), -1e300)
+    metric[:, 0] = 0.0
+    back = np.zeros((top, b, STATES), bool)
+    # the tail's inputs are 0: transitions into odd states are closed there
+    tail_from = steps - TAIL
+    odd = np.flatnonzero(_INPUT == 1)
+    s0, s1 = _SIGN[..., 0], _SIGN[..., 1]  # (2, S): output signs from either predecessor
+    p0, p1 = _PRED[0], _PRED[1]
+    for t in range(top):
+        y0, y1 = y[:, t, 0:1], y[:, t, 1:2]
+        c0 = metric[:, p0] + (y0 * s0[0] + y1 * s1[0])
+        c1 = metric[:, p1] + (y0 * s0[1] + y1 * s1[1])
+        pick = c1 > c0
+        metric = np.maximum(c0, c1)
+        if t >= tail_from.min():
+            metric[np.ix_(np.flatnonzero(t >= tail_from), odd)] = -1e300
+        back[t] = pick
+    out = [np.zeros(int(n) - TAIL, np.uint8) for n in steps]
+    state = np.zeros(b, np.int64)
+    bits = np.zeros((top, b), np.uint8)
+    rows = np.arange(b)
+    for t in range(top - 1, -1, -1):
+        live = t < steps
+        bits[t] = state & 1
+        prev = (state >> 1) | (back[t, rows, state].astype(np.int64) << (TAIL - 1))
+        state = np.where(live, prev, state)
+    for i, n in enumerate(steps):
+        out[i] = bits[: int(n) - TAIL, i].copy()
+    return out
+
+
+def posteriors(llr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact per-bit posteriors of one terminated trellis (BCJR in the log domain).
+
+    Parameters
+    ----------
+    llr : (RATE * (n + TAIL),) float64 ndarray
+        Calibrated log-likelihood ratio of each coded bit.
+
+    Returns
+    -------
+    bits : (n,) uint8 ndarray
+        The most probable value of each message bit.
+    confidence : (n,) float64 ndarray
+        Its posterior probability, in [0.5, 1].
+    """
+    y = np.asarray(llr, np.float64).reshape(-1, RATE)
+    steps = len(y)
+    n = steps - TAIL
+    gamma = 0.5 * np.einsum("tj,psj->tps", y, _SIGN)  # (T, 2, S) log-likelihood of each transition
+    closed = np.zeros((steps, STATES), bool)
+    closed[n:, _INPUT == 1] = True
+    gamma = np.where(closed[:, None, :], -np.inf, gamma)
+    alpha = np.full((steps + 1, STATES), -np.inf)
+    alpha[0, 0] = 0.0
+    for t in range(steps):
+        alpha[t + 1] = np.logaddexp(alpha[t, _PRED[0]] + gamma[t, 0], alpha[t, _PRED[1]] + gamma[t, 1])
+        alpha[t + 1] -= alpha[t + 1].max()
+    beta = np.full((steps + 1, STATES), -np.inf)
+    beta[steps, 0] = 0.0
+    for t in range(steps - 1, -1, -1):
+        # state p goes to ns = ((p << 1) | x) & 63 for x = 0, 1; it is predecessor k = p >> 5 there
+        into = beta[t + 1] + gamma[t]  # (2, S): the transition from _PRED[k, ns] into ns
+        beta[t] = np.logaddexp(into[_HIGH, _SUCC[0]], into[_HIGH, _SUCC[1]])
+        beta[t] -= beta[t].max()
+    # log P(message bit t = x): the transitions into states of input x
+    joint = np.stack([alpha[:-1][:, _PRED[k]] + gamma[:, k] + beta[1:] for k in range(2)])  # (2, T, S)
+    lp = np.logaddexp(joint[0], joint[1])  # (T, S)
+    zero = np.logaddexp.reduce(np.where(_INPUT == 0, lp, -np.inf), axis=1)[:n]
+    one = np.logaddexp.reduce(np.where(_INPUT == 1, lp, -np.inf), axis=1)[:n]
+    llr_bits = zero - one
+    bits = (llr_bits < 0).astype(np.uint8)
+    conf = 1.0 / (1.0 + np.exp(-np.abs(llr_bits)))
+    return bits, np.clip(conf, 0.5, 1.0)

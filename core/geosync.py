@@ -1,0 +1,395 @@
+"""Geometric synchronisation: carriers and slots from positions in a pose-invariant frame.
+
+The connectivity labels of :mod:`core.sync` survive cropping, noise and smoothing, but not a
+re-triangulation: after a meshoptimizer simplification of 10 % every carrier of the bunny still
+exists, in place and reading its bit, but only 4 % keep their label (``core/README.md``, 2b).  This
+layer finds carriers again by where they are on the surface:
+
+* **Frame.**  The area-weighted centroid, principal axes and RMS radius ``rho`` of the *surface*
+  (exact triangle integrals, so a re-triangulation of the same surface leaves them alone): signs
+  from the third moments; when two second moments are within :data:`DEGENERATE` of each other
+  (surfaces of revolution, gears, square plates) the angle about the third axis comes from the
+  strongest angular harmonic of the surface, which fixes it up to ``2 pi / m``.
+* **Cells.**  A keyed offset grid of spacing ``h`` (a rung of :func:`rung_size`, a few edges) in
+  that frame; in every cell the usable vertex nearest to the cell's centre is a carrier, and the
+  cell's keyed hash its slot hash.  A simplification that keeps a vertex keeps it nearest (removing
+  others cannot bring one closer); a vertex that goes is replaced by one of its old neighbours,
+  which reads the bit more often than not (its ring contains the moved carrier).
+* **Candidates.**  What the detector cannot know for sure (a sign of a third moment near 0, the
+  ``2 pi / m`` ambiguity of a symmetric part, the rung after a simplification lengthened the
+  edges) is enumerated by :func:`frame_candidates` and :func:`rung_candidates`; the detector
+  decodes the candidate whose votes agree best within slots, a statistic that does not depend on
+  the payload (:mod:`core.detection`).
+
+A cropped piece has another frame: its carriers are found by the connectivity layer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.eig3 import eigh3
+from core.hashing import combine, derive, mix64
+from core.mesh import Adjacency, neighbour_moments
+
+#: two sqrt-eigenvalues of the surface's second moment within this ratio are one degenerate pair
+#: (the gear: 1.011, whose axes turned 0.2-0.4 degrees under simplification; bunny 1.28: 0.03)
+DEGENERATE = 1.1
+#: a third moment (skewness) below this is not trusted to fix its axis' sign: both are candidates
+SKEW_SURE = 0.05
+#: angular harmonics looked at for the angle of a degenerate pair, and the normalised magnitude
+#: the strongest must reach (a surface of revolution has none: no geometric carriers then)
+MAX_HARMONIC = 64
+MIN_HARMONIC = 0.02
+ANGLE_BINS = 4096
+#: cell sizes are rungs ``2**(k / 4) / 256`` of rho; the embedder takes the finest rung whose
+#: carriers are at most CARRIER_SHARE of the usable vertices (a simplification changes that: the
+#: detector tries rungs)...
+CARRIER_SHARE = 0.09
+#: ...and no finer than the rung of about TARGET_CELLS cells on the surface
+TARGET_CELLS = 8192
+#: rungs the detector tries below and above its own estimate (3 below: up to 65 % of the vertices gone)
+RUNGS_BELOW, RUNGS_ABOVE = 3, 1
+#: valences a geometric carrier may have (a simplification changes valences: looser than core.sync's)
+MIN_VALENCE, MAX_VALENCE = 3, 24
+#: a vertex competes for its cell within BALL cells of the centre, and the NEAREST such vertices in
+#: space are compared in their tangent planes (geometric_carriers)
+BALL, NEAREST = 0.35, 4
+
+
+@dataclass(frozen=True)
+class SurfaceFrame:
+    """Pose-invariant frame of a surface.
+
+    Attributes
+    ----------
+    centroid : (3,) float64
+    axes : (3, 3) float64
+        Rows are the frame's axes (right-handed), by decreasing second moment.
+    rho : float
+        RMS distance of the surface to its centroid (area-weighted).
+    area : float
+        Area of the surface.
+    sqrt_ratios : (2,) float64
+        ``sqrt(l1 / l2)``, ``sqrt(l2 / l3)`` of the second moments ``l1 >= l2 >= l3``.
+    skew : (3,) float64
+        Third moment along each axis over its second moment to the power 3/2.
+    degenerate : int
+        -1 for three distinct axes, else the index (0 or 1) of the first axis of the degenerate pair.
+    harmonic : int
+        The angular harmonic that fixed the angle of a degenerate pair (0 when none is needed).
+    """
+
+    centroid: np.ndarray
+    axes: np.ndarray
+    rho: float
+    area: float
+    sqrt_ratios: np.ndarray
+    skew: np.ndarray
+    degenerate: int
+    harmonic: int
+
+
+#: faces per chunk of the frame's integrals (temporaries of a few MB: no page faults on large meshes)
+CHUNK = 1 << 17
+
+
+def _face_integrals(v: np.ndarray, f: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Exact area, centroid and second moment (about the centroid, per unit area) of the surface,
+    and every face's area: the integrals of 1, x and x x^T over each triangle, summed in chunks of
+    faces (one gather of each corner coordinate per chunk)."""
+    cols = [np.ascontiguousarray(v[:, j]) for j in range(3)]
+    origin = np.array([float(c.mean()) for c in cols])  # a provisional origin keeps the sums small
+    ft = np.ascontiguousarray(f.T)
+    total, first, second = 0.0, np.zeros(3), np.zeros((3, 3))
+    areas = np.empty(len(f))
+    for lo in range(0, len(f), CHUNK):
+        corner = [np.stack([np.take(cols[j], ft[k, lo:lo + CHUNK]) - origin[j] for j in range(3)], axis=1)
+                  for k in range(3)]
+        u, w = corner[1] - corner[0], corner[2] - corner[0]
+        cx = u[:, 1] * w[:, 2] - u[:, 2] * w[:, 1]
+        cy = u[:, 2] * w[:, 0] - u[:, 0] * w[:, 2]
+        cz = u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]
+        area = 0.5 * np.sqrt(cx * cx + cy * cy + cz * cz)
+        areas[lo:lo + CHUNK] = area
+        s = corner[0] + corner[1] + corner[2]
+        total += float(area.sum())
+        first += area @ s / 3.0
+        # exact: the integral of x x^T over a triangle is area / 12 (sum p_i p_i^T + s s^T)
+        for q in (*corner, s):
+            second += (q * area[:, None]).T @ q / 12.0
+    if not total > 0:
+        return 0.0, origin, second, areas
+    mean = first / total
+    return total, origin + mean, second / total - np.outer(mean, mean), areas
+
+
+def surface_frame(vertices: np.ndarray, faces: np.ndarray) -> SurfaceFrame | None:
+    """The frame of the surface ``(vertices, faces)``, or ``None`` when it has none (no area, or all
+    three second moments alike, or a degenerate pair without an angular harmonic: a sphere, a
+    surface of revolution).
+
+    Area, centroid and second moments are exact surface integrals; the third moments (signs) and
+    angular harmonics (the angle of a degenerate pair) use the vertices weighted by a third of the
+    area of their faces, whose error shrinks with the square of the edge length."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    if len(f) == 0:
+        return None
+    total, centroid, second, areas = _face_integrals(v, f)
+    if not total > 0:
+        return None
+    weight = (np.bincount(f[:, 0], areas, minlength=len(v)) + np.bincount(f[:, 1], areas, minlength=len(v))
+              + np.bincount(f[:, 2], areas, minlength=len(v))) / 3.0
+    used = np.flatnonzero(weight > 0)
+    p = v[used] - centroid
+    wv = weight[used]
+    lam, vec = np.linalg.eigh(second)
+    lam, vec = np.maximum(lam[::-1], 0.0), vec[:, ::-1].T.copy()
+    if not lam[0] > 0:
+        return None
+    rho = float(np.sqrt(lam.sum()))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratios = np.sqrt(np.array([lam[0] / lam[1], lam[1] / lam[2]]))
+    ratios = np.where(np.isfinite(ratios), ratios, np.inf)
+    close = ratios < DEGENERATE
+    if close.all():
+        return None
+    # third moments along each axis (their signs fix the axes')
+    y = p @ vec.T
+    third = wv @ (y * y * y) / total
+    skew = third / np.maximum(lam, 1e-300) ** 1.5
+    axes = vec * np.where(skew >= 0, 1.0, -1.0)[:, None]
+    degenerate, harmonic = -1, 0
+    if close.any():
+        degenerate = int(np.flatnonzero(close)[0])
+        pair = [degenerate, degenerate + 1]
+        # the unique axis keeps its skew sign; the pair's angle from the strongest harmonic
+        px, py = p @ axes[pair[0]], p @ axes[pair[1]]
+        r = np.sqrt(px * px + py * py)
+        theta = np.arctan2(py, px)
+        m = np.arange(1, MAX_HARMONIC + 1)
+        ring = wv * r
+        norm = float(ring.sum()) or 1.0
+        # the weights binned by angle, then one FFT: sum w exp(i m theta) for every m at once
+        # (bins of 2 pi / 4096, far finer than the highest harmonic's period)
+        bins = ANGLE_BINS
+        b = np.minimum(((theta + np.pi) * (bins / (2.0 * np.pi))).astype(np.int64), bins - 1)
+        hist = np.bincount(b, ring, minlength=bins)
+        spectrum = np.fft.ifft(hist)[m] * bins * np.exp(1j * m * (np.pi / bins - np.pi)) / norm
+        mag = np.abs(spectrum)
+        if mag.max() < MIN_HARMONIC:
+            return None
+        # the fundamental: the lowest harmonic within half of the strongest (a k-fold part's
+        # spectrum lives on multiples of k, its strongest line may be 2k)
+        harmonic = int(m[np.flatnonzero(mag >= 0.5 * mag.max())[0]])
+        angle = float(np.angle(spectrum[harmonic - 1])) / harmonic
+        e0 = np.cos(angle) * axes[pair[0]] + np.sin(angle) * axes[pair[1]]
+        e1 = -np.sin(angle) * axes[pair[0]] + np.cos(angle) * axes[pair[1]]
+        axes = axes.copy()
+        axes[pair[0]], axes[pair[1]] = e0, e1
+        if np.linalg.det(axes) < 0:
+            axes[pair[1]] = -axes[pair[1]]
+    elif np.linalg.det(axes) < 0:
+        axes[2] = -axes[2]
+    return SurfaceFrame(centroid, axes, rho, total, ratios, skew, degenerate, harmonic)
+
+
+def frame_candidates(frame: SurfaceFrame) -> list[np.ndarray]:
+    """Rotations (rows: axes) the detector tries, the embedder's first: each axis sign that its
+    third moment does not fix, and the ``2 pi / m`` turns of a degenerate pair."""
+    base = frame.axes
+    if frame.degenerate >= 0:
+        pair = [frame.degenerate, frame.degenerate + 1]
+        unique = 2 if frame.degenerate == 0 else 0
+        signs = [1.0, -1.0] if abs(frame.skew[unique]) < SKEW_SURE else [1.0]
+        out = []
+        for sign in signs:
+            for j in range(frame.harmonic):
+                t = 2.0 * np.pi * j / frame.harmonic
+                r = base.copy()
+                r[pair[0]] = np.cos(t) * base[pair[0]] + np.sin(t) * base[pair[1]]
+                # the unique axis turned over mirrors the pair's second axis (right-handed)
+                r[pair[1]] = sign * (-np.sin(t) * base[pair[0]] + np.cos(t) * base[pair[1]])
+                r[unique] = sign * base[unique]
+                out.append(r)
+        return out
+    # axes 0 and 1 carry their own sign; axis 2 follows (right-handed)
+    flips = [(1.0, 1.0)]
+    loose = np.abs(frame.skew[:2]) < SKEW_SURE
+    if loose[0]:
+        flips.append((-1.0, 1.0))
+    if loose[1]:
+        flips += [(s0, -1.0) for s0, _ in list(flips)]
+    out = []
+    for s0, s1 in flips:
+        r = base.copy()
+        r[0] *= s0
+        r[1] *= s1
+        r[2] *= s0 * s1
+        out.append(r)
+    return out
+
+
+def rung_size(k: int) -> float:
+    """Cell size of rung ``k``, in units of rho: ``2**(k / 4) / 256``."""
+    return float(2.0 ** (k / 4.0) / 256.0)
+
+
+def _rung_at_least(size: float) -> int:
+    return int(np.ceil(4.0 * np.log2(max(size * 256.0, 1e-12)) - 1e-9))
+
+
+def area_rung(frame: SurfaceFrame) -> int:
+    """The finest rung: about :data:`TARGET_CELLS` cells on the surface (its area, which no
+    re-triangulation changes, alone decides it, so that large meshes need no search)."""
+    return _rung_at_least(np.sqrt(frame.area / frame.rho**2 / TARGET_CELLS))
+
+
+def choose_rung(vertices: np.ndarray, adj: Adjacency, frame: SurfaceFrame, axes: np.ndarray,
+                key: str | bytes) -> int:
+    """The finest rung, not below :func:`area_rung`, whose carriers are at most
+    :data:`CARRIER_SHARE` of the usable vertices (smaller cells put carriers of neighbouring cells
+    next to each other).  A simplification leaves fewer vertices and so a coarser rung here: the
+    detector tries the finer ones too (:func:`rung_candidates`)."""
+    lo = area_rung(frame)
+    limit = CARRIER_SHARE * int(np.count_nonzero(usable(adj)))
+
+    def fits(k: int) -> bool:
+        return len(geometric_carriers(vertices, adj, frame, axes, k, key)[0]) <= limit
+
+    if fits(lo):
+        return lo
+    step = 8
+    hi = lo + step
+    while not fits(hi) and hi < lo + 8 * step:
+        lo, hi = hi, hi + step
+    while hi - lo > 1:  # fits(hi), not fits(lo)
+        mid = (lo + hi) // 2
+        lo, hi = (lo, mid) if fits(mid) else (mid, hi)
+    return hi
+
+
+def rung_candidates(first: int, frame: SurfaceFrame) -> list[int]:
+    """Rungs the detector tries, most likely first: its own choice, then the finer ones a
+    simplification may have come from (half the vertices gone: about 2 rungs), then one coarser;
+    never below the area's rung."""
+    floor = area_rung(frame)
+    out = [first] + [first - j for j in range(1, RUNGS_BELOW + 1) if first - j >= floor]
+    return out + [first + j for j in range(1, RUNGS_ABOVE + 1)]
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where the geometric carriers of one mesh are: its frame, one rotation of
+    :func:`frame_candidates` (rows: axes) and one cell-size rung."""
+
+    frame: SurfaceFrame
+    axes: np.ndarray
+    rung: int
+
+
+def embed_placement(vertices: np.ndarray, faces: np.ndarray, adj: Adjacency,
+                    key: str | bytes) -> Placement | None:
+    """The embedder's placement of a mesh, or ``None`` when its surface has no frame."""
+    frame = surface_frame(vertices, faces)
+    if frame is None:
+        return None
+    return Placement(frame, frame.axes, choose_rung(vertices, adj, frame, frame.axes, key))
+
+
+def detect_placements(vertices: np.ndarray, faces: np.ndarray, adj: Adjacency,
+                      key: str | bytes) -> list[Placement]:
+    """Every placement the detector tries on a mesh, the embedder's own first (empty without a frame)."""
+    frame = surface_frame(vertices, faces)
+    if frame is None:
+        return []
+    rungs = rung_candidates(choose_rung(vertices, adj, frame, frame.axes, key), frame)
+    return [Placement(frame, axes, k) for k in rungs for axes in frame_candidates(frame)]
+
+
+def usable(adj: Adjacency) -> np.ndarray:
+    """Vertices that may be geometric carriers: manifold, valence in [MIN_VALENCE, MAX_VALENCE]."""
+    return (~adj.nonmanifold) & (adj.degree >= MIN_VALENCE) & (adj.degree <= MAX_VALENCE)
+
+
+def geometric_carriers(vertices: np.ndarray, adj: Adjacency, frame: SurfaceFrame, axes: np.ndarray,
+                       rung: int, key: str | bytes) -> tuple[np.ndarray, np.ndarray]:
+    """Carriers chosen by position: per cell of the keyed grid, the usable vertex nearest its centre.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float64
+    adj : Adjacency
+    frame : SurfaceFrame
+    axes : (3, 3) float64
+        The rotation to use (one of :func:`frame_candidates`).
+    rung : int
+        Cell size rung (:func:`rung_size`).
+    key : str or bytes
+
+    Returns
+    -------
+    carriers : (k,) int64
+        Vertex indices, sorted; no two adjacent (of two adjacent winners the smaller hash leaves).
+    cell_hash : (k,) uint64
+        Keyed hash of each carrier's cell (its slot hash).
+
+    Notes
+    -----
+    Only vertices within :data:`BALL` cells of their cell's centre compete (a cell the surface
+    passes farther from has no carrier), and of those the :data:`NEAREST` nearest in space; among
+    them the nearest *in the vertex's tangent plane* wins (the least-variance axis of its
+    neighbours, which its own position does not enter), so that a carrier's move along its
+    normal, which is what the embedding does, never changes which vertex is nearest.
+    """
+    h = rung_size(rung)
+    if not len(vertices) or not frame.rho > 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.uint64)
+    rng = np.random.default_rng(derive(key, f"meshmark-goff{rung}"))
+    offset = rng.uniform(0.0, h, 3)
+    y = ((vertices - frame.centroid) @ axes.T) / frame.rho - offset
+    cell = np.floor(y / h)
+    rest = y - (cell + 0.5) * h
+    d3 = rest[:, 0] ** 2 + rest[:, 1] ** 2 + rest[:, 2] ** 2
+    cand = np.flatnonzero((d3 < (BALL * h) ** 2) & usable(adj))
+    if not cand.size:
+        return np.zeros(0, np.int64), np.zeros(0, np.uint64)
+    c = cell[cand].astype(np.int64)
+    salt = np.uint64(derive(key, "meshmark-gcell"))
+    ch = combine(combine(mix64(c[:, 0].view(np.uint64) ^ salt), c[:, 1].view(np.uint64)),
+                 c[:, 2].view(np.uint64))
+    order = np.lexsort((d3[cand], ch))
+    hs = ch[order]
+    start = np.ones(len(order), bool)
+    start[1:] = hs[1:] != hs[:-1]
+    rank = np.arange(len(order)) - np.maximum.accumulate(np.where(start, np.arange(len(order)), 0))
+    near = order[rank < NEAREST]
+    sub, sub_h = cand[near], ch[near]
+    _, sigma = neighbour_moments(vertices, adj, sub)
+    normal = eigh3(sigma)[1][:, :, 0] @ axes.T  # least-variance axis, in the frame
+    r = rest[sub]
+    along = (r * normal).sum(axis=1)
+    dt = d3[sub] - along * along
+    order = np.lexsort((dt, sub_h))
+    hs = sub_h[order]
+    first = np.ones(len(order), bool)
+    first[1:] = hs[1:] != hs[:-1]
+    win, win_h = sub[order[first]], hs[first]
+    # two winners of neighbouring cells may be adjacent: the smaller cell hash leaves
+    n = len(vertices)
+    hv = np.zeros(n, np.uint64)
+    is_c = np.zeros(n, bool)
+    is_c[win] = True
+    hv[win] = win_h
+    _, pos = adj.ring_entries(win)
+    nb = adj.indices[pos]
+    rows = np.repeat(win, adj.degree[win])
+    lose = np.zeros(n, bool)
+    lose[rows[is_c[nb] & (hv[nb] > hv[rows])]] = True
+    keep = ~lose[win]
+    win, win_h = win[keep], win_h[keep]
+    srt = np.argsort(win)
+    return win[srt], win_h[srt]
