@@ -71,29 +71,38 @@ def run_one(name: str, method: str, seeds: int, cases: dict[str, tuple[str, Any]
     row.update(rms=rep.rms_displacement, max=rep.max_displacement, carriers=rep.carriers,
                carriers_pct=100.0 * rep.carriers / max(n, 1), cap_factor=rep.cap_factor)
     mesh = load_mesh(out.data, name)
+    row["layers"] = ",".join(rep.layers)
     for col, (attack, level) in cases.items():
         found = 0
+        layers: set[str] = set()
         tries = 1 if attack in DETERMINISTIC else seeds
         for seed in range(tries):
             rng = np.random.default_rng(1000 + seed)
             parts = attack_parts(attack, mesh.parts, level, rng)
             blob, fname = write_parts(parts, mesh.names)
             res = detect_file(blob, KEY, filename=fname, method=method)
-            found += int(res.detected and res.crc_ok and res.payload == PAYLOAD)
-        row[col] = f"{found}/{tries}"
+            ok = res.detected and res.crc_ok and res.payload == PAYLOAD
+            found += int(ok)
+            if ok and res.layer:
+                layers.add(LAYER_MARKS[res.layer])
+        row[col] = f"{found}/{tries}" + (" " + "".join(sorted(layers)) if layers else "")
     return row
 
 
+#: how a cell says which layer read the payload (DetectResult.layer)
+LAYER_MARKS = {"connectivity": "c", "both": "b", "geometry": "g"}
+
+
 def table(rows: list[dict[str, Any]], cases: list[str]) -> str:
-    head = ["mesh", "method", "vertices", "carriers %", "RMS", "max", "cap x"] + cases
+    head = ["mesh", "method", "vertices", "carriers %", "RMS", "max", "cap x", "layers"] + cases
     body = []
     for r in rows:
         if "refused" in r:
-            body.append([r["mesh"], r["method"], r["vertices"], "refused: " + r["refused"][:90], "", "", ""]
-                        + [""] * len(cases))
+            body.append([r["mesh"], r["method"], r["vertices"], "refused: " + r["refused"][:90]]
+                        + [""] * (4 + len(cases)))
             continue
         body.append([r["mesh"], r["method"], r["vertices"], f"{r['carriers_pct']:.1f}", f"{r['rms']:.2e}",
-                     f"{r['max']:.2e}", f"{r['cap_factor']:g}"] + [r[c] for c in cases])
+                     f"{r['max']:.2e}", f"{r['cap_factor']:g}", r["layers"]] + [r[c] for c in cases])
     return md_table(head, body)
 
 
@@ -120,8 +129,9 @@ def main(argv: list[str] | None = None) -> int:
         given = argv if argv is not None else sys.argv[1:]
         env["command"] = "python -m bench.engine_table " + " ".join(given)
         intro = [f"- Key `{KEY}`, payload `{PAYLOAD}` (32 bits), default strength; a cell is payloads "
-                 "recovered exactly (CRC) / attacks tried; RMS and max displacement of the bounding-box "
-                 "diagonal", ""]
+                 "recovered exactly (CRC) / attacks tried, and which layer read them (c: connectivity, "
+                 "b: both together, g: geometric); RMS and max displacement of the bounding-box "
+                 "diagonal; `layers`: those the embedder verified to read alone", ""]
         a.out.write_text(header("MeshMark engine table (issue 14 targets)", env, intro) + "\n" + text + "\n")
     return 0
 

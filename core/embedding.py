@@ -296,12 +296,19 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
                 any_bad = True
                 rounds[k] = r
             an[k] = st.local
-        if not any_bad and not _reselect([st.v for st in states], faces, [st.adj for st in states],
-                                         [st.labels for st in states], key, method, tol, chosen, an, slots_of,
-                                         codeword):
+        if any_bad:
+            continue
+        # settled: the geometric cells, then the connectivity selection, as the detector will see them
+        changed = [st.reselect() for st in states]  # every mesh, not just up to the first change
+        if any(changed):
+            continue
+        if not _reselect([st.v for st in states], faces, [st.adj for st in states],
+                         [st.labels for st in states], key, method, tol, chosen, an, slots_of, codeword):
             break
     else:
         # out of rounds: the caller verifies what the detector will see
+        for st in states:
+            st.reselect()
         _reselect([st.v for st in states], faces, [st.adj for st in states], [st.labels for st in states],
                   key, method, tol, chosen, an, None, codeword)
     stats = [EmbedStats(len(st.local0), int(st.skipped.sum()), int(np.any(st.v != st.v0, axis=1).sum()),
@@ -407,23 +414,40 @@ class _Mesh:
 
     def _reread(self, moved_idx: np.ndarray) -> None:
         """Statistics after the vertices ``moved_idx`` moved: the whole analysis of a regular mesh
-        (its labels depend on positions); else the moved carriers' statistics, the boundaries of
-        the carriers next to a moved geometric carrier, and the geometric carriers chosen again."""
+        (its labels depend on positions); else the moved carriers' statistics and, with geometric
+        carriers (which may be next to connectivity carriers), the boundaries of the carriers of
+        either layer with a moved neighbour.  Which vertex is nearest a cell's centre is looked at
+        again when the carriers settle (:meth:`reselect`)."""
+        moved = np.zeros(len(self.v), bool)
+        moved[moved_idx] = True
         if self.labels.regular:
             self.labels = vertex_labels(self.v, self.adj, self.labels)
             self.local = analyse(self.v, self.faces, self.key, self.method, adj=self.adj, labels=self.labels,
                                  tol=self.tol)
         else:
-            a = self.local
-            moved = np.zeros(len(self.v), bool)
-            moved[moved_idx] = True
-            mine = np.flatnonzero(moved[a.carriers])
-            a.z[mine] = statistic(self.method, self.v[a.carriers[mine]], a.mu[mine], a.axes[mine],
-                                  a.lam[mine], a.scale[mine], self.tol)
-            if self.geo is not None:
-                _refresh(a, self.v, self.adj, _touched(a, self.adj, moved), self.method, self.tol)
+            self._own(self.local, moved)
         if self.geo is not None:
-            self.geo = self._geometric()
+            self._own(self.geo, moved)
+
+    def _own(self, a: Analysis, moved: np.ndarray) -> None:
+        """Re-read the carriers of ``a`` that moved, and the boundaries of those next to a moved
+        vertex when the other layer exists (one layer alone is an independent set)."""
+        mine = np.flatnonzero(moved[a.carriers])
+        a.z[mine] = statistic(self.method, self.v[a.carriers[mine]], a.mu[mine], a.axes[mine],
+                              a.lam[mine], a.scale[mine], self.tol)
+        if self.geo is not None:
+            _refresh(a, self.v, self.adj, _touched(a, self.adj, moved), self.method, self.tol)
+
+    def reselect(self) -> bool:
+        """Choose the geometric carriers again at the current positions (the moves change which
+        vertex is nearest a few cells' centres); True when they changed."""
+        if self.geo is None:
+            return False
+        now = self._geometric()
+        assert now is not None
+        same = np.array_equal(now.carriers, self.geo.carriers)
+        self.geo = now
+        return not same
 
 
 def _reselect(vs: list[np.ndarray], faces: list[np.ndarray], adjs: list[Adjacency], labels: list[Labels],

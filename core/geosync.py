@@ -249,19 +249,22 @@ def area_rung(frame: SurfaceFrame) -> int:
 
 
 def choose_rung(vertices: np.ndarray, adj: Adjacency, frame: SurfaceFrame, axes: np.ndarray,
-                key: str | bytes) -> int:
+                key: str | bytes) -> tuple[int, int]:
     """The finest rung, not below :func:`area_rung`, whose carriers are at most
     :data:`CARRIER_SHARE` of the usable vertices (smaller cells put carriers of neighbouring cells
-    next to each other).  A simplification leaves fewer vertices and so a coarser rung here: the
-    detector tries the finer ones too (:func:`rung_candidates`)."""
+    next to each other), and its carrier count.  A simplification leaves fewer vertices and so a
+    coarser rung here: the detector tries the finer ones too (:func:`rung_candidates`)."""
     lo = area_rung(frame)
     limit = CARRIER_SHARE * int(np.count_nonzero(usable(adj)))
+    counts: dict[int, int] = {}
 
     def fits(k: int) -> bool:
-        return len(geometric_carriers(vertices, adj, frame, axes, k, key)[0]) <= limit
+        if k not in counts:
+            counts[k] = len(geometric_carriers(vertices, adj, frame, axes, k, key)[0])
+        return counts[k] <= limit
 
     if fits(lo):
-        return lo
+        return lo, counts[lo]
     step = 8
     hi = lo + step
     while not fits(hi) and hi < lo + 8 * step:
@@ -269,7 +272,7 @@ def choose_rung(vertices: np.ndarray, adj: Adjacency, frame: SurfaceFrame, axes:
     while hi - lo > 1:  # fits(hi), not fits(lo)
         mid = (lo + hi) // 2
         lo, hi = (lo, mid) if fits(mid) else (mid, hi)
-    return hi
+    return hi, counts[hi]
 
 
 def rung_candidates(first: int, frame: SurfaceFrame) -> list[int]:
@@ -289,6 +292,8 @@ class Placement:
     frame: SurfaceFrame
     axes: np.ndarray
     rung: int
+    #: the carriers there when the embedder chose it (0 when unknown)
+    count: int = 0
 
 
 def embed_placement(vertices: np.ndarray, faces: np.ndarray, adj: Adjacency,
@@ -297,7 +302,8 @@ def embed_placement(vertices: np.ndarray, faces: np.ndarray, adj: Adjacency,
     frame = surface_frame(vertices, faces)
     if frame is None:
         return None
-    return Placement(frame, frame.axes, choose_rung(vertices, adj, frame, frame.axes, key))
+    rung, count = choose_rung(vertices, adj, frame, frame.axes, key)
+    return Placement(frame, frame.axes, rung, count)
 
 
 def detect_placements(vertices: np.ndarray, faces: np.ndarray, adj: Adjacency,
@@ -306,7 +312,7 @@ def detect_placements(vertices: np.ndarray, faces: np.ndarray, adj: Adjacency,
     frame = surface_frame(vertices, faces)
     if frame is None:
         return []
-    rungs = rung_candidates(choose_rung(vertices, adj, frame, frame.axes, key), frame)
+    rungs = rung_candidates(choose_rung(vertices, adj, frame, frame.axes, key)[0], frame)
     return [Placement(frame, axes, k) for k in rungs for axes in frame_candidates(frame)]
 
 

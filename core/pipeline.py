@@ -33,7 +33,7 @@ from core.detection import (
 from core.embedding import EmbedStats, Quantize, embed_parts
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, FORMATS, Limits, MeshDocument, MeshPart, read_mesh, weld
-from core.geosync import CARRIER_SHARE, Placement, detect_placements, embed_placement, geometric_carriers
+from core.geosync import CARRIER_SHARE, Placement, detect_placements, embed_placement
 from core.hashing import derive
 from core.mesh import Adjacency, adjacency, bbox_diagonal
 from core.options import DEFAULT_METHOD, METHODS, Options
@@ -517,7 +517,7 @@ def _placements(meshes: list[tuple[np.ndarray, np.ndarray]], prepared: list[tupl
         return [None] * len(meshes)
     for (v, f), (adj, _) in zip(meshes, prepared, strict=True):
         p = embed_placement(v, f, adj, key)
-        count = 0 if p is None else len(geometric_carriers(v, adj, p.frame, p.axes, p.rung, key)[0])
+        count = 0 if p is None else p.count
         out.append(p if count >= GEOMETRIC_PART_MIN else None)
         total += count if count >= GEOMETRIC_PART_MIN else 0
     return out if total >= GEOMETRIC_PER_SLOT * L else [None] * len(meshes)
