@@ -16,7 +16,7 @@ import numpy as np
 
 from core.analysis import Analysis, analyse, analyse_geometric, prepare, priorities, same_order, statistic
 from core.eig3 import eigh3
-from core.geosync import Placement
+from core.geosync import Placement, follow
 from core.mesh import Adjacency, bbox_diagonal, neighbour_moments
 from core.slots import assign_slots, ranked_by_default
 from core.sync import Labels, vertex_labels
@@ -339,6 +339,8 @@ class _Mesh:
     def _geometric(self) -> Analysis | None:
         if self.placement is None:
             return None
+        if np.any(self.v != self.v0):
+            self.placement = follow(self.placement, self.v, self.faces)
         got = analyse_geometric(self.v, self.adj, self.key, [self.method], self.placement, self.tol)
         return got[self.method]
 
