@@ -14,7 +14,8 @@ from core.coding import KEY_CODE_BITS
 def test_lengths_of_the_frames() -> None:
     """Payload + CRC-32, zero-padded to a nibble, + 6 tail bits, at rate 1/2."""
     assert coding.codeword_length(None) == 2 * (KEY_CODE_BITS + 6) == 76
-    assert [coding.codeword_length(n) for n in (1, 4, 5, 32, 256)] == [2 * 42, 2 * 42, 2 * 46, 2 * 70, 2 * 294]
+    lengths = [coding.codeword_length(n) for n in (1, 4, 5, 32, 256)]
+    assert lengths == [2 * 42, 2 * 42, 2 * 46, 2 * 70, 2 * 294]
     assert [coding.message_length(n) for n in (1, 4, 5, 256)] == [36, 36, 40, 288]
 
 

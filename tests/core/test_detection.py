@@ -165,7 +165,8 @@ def test_cached_votes_follow_the_values_not_their_id() -> None:
     k = 200
     hashes = rng.integers(0, 2**63, k, dtype=np.uint64)
     empty = np.zeros((k, 3))
-    a = Analysis(np.arange(k), hashes, rng.normal(size=k), empty, np.zeros((k, 3, 3)), empty, np.ones(k), False)
+    z = rng.normal(size=k)
+    a = Analysis(np.arange(k), hashes, z, empty, np.zeros((k, 3, 3)), empty, np.ones(k), False)
     old, new = [np.ones(k)], [np.arange(k, dtype=np.float64)]
     cache: dict = {("centred", id(new)): (old, np.zeros(k))}  # what an id() reused after a free leaves
     _, raw, _ = _votes([a], new, KEY, 76, None, cache)
