@@ -42,6 +42,7 @@ from core.resample import undo_subdivision
 from core.slots import bucketed_slots, own_copy
 from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, Labels
 from core.tolerances import TOL, Tolerances
+from core.unsmooth import MIN_SCORE, choose_iterations, unsmooth
 
 #: carriers per codeword bit that capacity asks for (skipped carriers and slot collisions)
 CAPACITY_MARGIN = 1.5
@@ -136,8 +137,12 @@ def _analyses(doc: MeshDocument, parts: list[int], key: str | bytes, methods: Se
     return _layers(doc, parts, key, methods, progress)[0]
 
 
+#: every part's connectivity analyses per method, and each part's adjacency (:func:`_layers`)
+_Layers = tuple[dict[str, list[Analysis]], list[Adjacency]]
+
+
 def _layers(doc: MeshDocument, parts: list[int], key: str | bytes, methods: Sequence[str],
-            progress: Progress = _no_progress) -> tuple[dict[str, list[Analysis]], list[Adjacency]]:
+            progress: Progress = _no_progress) -> _Layers:
     """Every part's connectivity carriers analysed under ``key``, and each part's adjacency;
     ``progress`` by vertices analysed."""
     out: dict[str, list[Analysis]] = {m: [] for m in methods}
@@ -709,33 +714,66 @@ def _detect_doc(doc: MeshDocument, options: Options, analysed: Progress = _no_pr
     the surface's frame), the geometric layer alone at its best placement (a re-triangulation loses
     the connectivity labels).  When the file does not read and some of its meshes are one
     subdivision step of a coarser mesh (:func:`core.resample.undo_subdivision`), the coarse meshes
-    are read as a second file; a detection there reports ``resampled`` and a false-positive figure
-    doubled (the union bound over both)."""
+    are read as a second file; a detection there reports ``resampled``.  When that does not read
+    either, the file is read once more with uniform Laplacian smoothing undone
+    (:func:`_unsmoothed`); a detection there reports ``unsmoothed``.  A detection on such a
+    further file reports the false-positive figure of the files read summed (the union bound over
+    them; each has about the same candidates)."""
     key = options.secret
     parts = _usable_parts(doc)
-    found = _read_views(doc, parts, key, options, analysed)
+    layers = _layers(doc, parts, key, options.detect_methods, analysed)
+    found = _read_views(doc, parts, key, options, layers=layers)
     if found.detected:
         return found
+    files = 1
     coarse = _coarsened(doc, parts)
-    if coarse is None:
+    if coarse is not None:
+        files += 1
+        doc2, scheme = coarse
+        second = _read_views(doc2, list(range(len(doc2.parts))), key, options)
+        if second.detected:
+            return replace(second, resampled=scheme,
+                           false_positive_probability=min(1.0, files * second.false_positive_probability))
+    smooth = _unsmoothed(doc, parts, layers, options)
+    if smooth is None:
         return found
-    doc2, scheme = coarse
-    second = _read_views(doc2, list(range(len(doc2.parts))), key, options)
-    if not second.detected:
+    doc3, iterations = smooth
+    third = _read_views(doc3, list(range(len(doc3.parts))), key, options)
+    if not third.detected:
         return found
-    return replace(second, resampled=scheme,
-                   false_positive_probability=min(1.0, 2.0 * second.false_positive_probability))
+    return replace(third, unsmoothed=iterations,
+                   false_positive_probability=min(1.0, (files + 1) * third.false_positive_probability))
+
+
+def _unsmoothed(doc: MeshDocument, parts: list[int], layers: _Layers, options: Options
+                ) -> tuple[MeshDocument, int] | None:
+    """The usable parts with ``n`` iterations of uniform Laplacian smoothing undone
+    (:mod:`core.unsmooth`), ``n`` chosen by the agreement of the connectivity carriers' votes, and
+    ``n``; None when no ``n`` makes them agree by :data:`~core.unsmooth.MIN_SCORE` (an unmarked
+    file, a wrong key, an attack the inverse does not undo), or when there are no carriers."""
+    local, adjs = layers
+    if not any(len(a.carriers) for a in next(iter(local.values()))):
+        return None
+    meshes = [(doc.parts[i].vertices, adj) for i, adj in zip(parts, adjs, strict=True)]
+    lengths = _codeword_lengths(options.payload_bits)
+    iterations, score = choose_iterations(meshes, local, lengths)
+    if score < MIN_SCORE:
+        return None
+    return _ArrayDoc([(unsmooth(v, adj, iterations), doc.parts[i].faces)
+                      for (v, adj), i in zip(meshes, parts, strict=True)]), iterations
 
 
 def _read_views(doc: MeshDocument, parts: list[int], key: str | bytes, options: Options,
-                analysed: Progress = _no_progress) -> DetectResult:
+                analysed: Progress = _no_progress,
+                layers: _Layers | None = None) -> DetectResult:
     """Detection over the views of :func:`_detect_doc` for one file's usable ``parts``: the
     connectivity layer first (what an untouched file reads, without the cost of the surface's
     frame), then both layers together and the geometric layer alone, made only when it did not
     read.  The false-positive figure counts the geometric views whenever the file is large enough
-    to have had geometric carriers (:data:`GEOMETRIC_MIN_VERTICES`), whether or not it has them."""
+    to have had geometric carriers (:data:`GEOMETRIC_MIN_VERTICES`), whether or not it has them.
+    ``layers``: the parts' :func:`_layers`, when the caller has them."""
     methods, expected = options.detect_methods, options.payload_bits
-    local, adjs = _layers(doc, parts, key, methods, analysed)
+    local, adjs = layers if layers is not None else _layers(doc, parts, key, methods, analysed)
     if sum(len(doc.parts[i].vertices) for i in parts) < GEOMETRIC_MIN_VERTICES:
         return detect_views([(CONNECTIVITY, local)], key, expected)
     geo = _GeometricViews(doc, parts, adjs, key, methods, _codeword_lengths(expected))

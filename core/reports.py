@@ -68,6 +68,9 @@ class DetectResult(_Report):
     #: "midpoint", "loop" or "sqrt3" when the mark was read on the mesh one subdivision step down
     #: (the file had been subdivided after marking), else None
     resampled: str | None = None
+    #: iterations of uniform Laplacian smoothing (step 0.1) undone before the mark read (the file
+    #: had been smoothed after marking), else None
+    unsmoothed: int | None = None
     #: which carriers read the mark: "both" layers together, the "connectivity" layer alone (a
     #: cropped piece), or the "geometry" layer alone (a re-triangulated mesh); None when not read
     layer: str | None = None

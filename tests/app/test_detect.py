@@ -10,8 +10,8 @@ from core.api import DetectResult
 from tests.app.conftest import KEY, assert_problem, detect, embed
 
 DETECT_KEYS = {"detected", "payload", "bit_confidence", "false_positive_probability", "copies", "carriers",
-               "crc_ok", "method", "key_derived", "bit_errors", "p_value", "parts", "resampled", "layer",
-               "geometric_carriers"}
+               "crc_ok", "method", "key_derived", "bit_errors", "p_value", "parts", "resampled", "unsmoothed",
+               "layer", "geometric_carriers"}
 
 
 @pytest.fixture(scope="module")
