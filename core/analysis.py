@@ -57,6 +57,9 @@ class Analysis:
     geometric : bool
         The carriers were chosen by position in the surface's frame (:mod:`core.geosync`), their
         slot hashes are cell hashes, and their slots are always hashed (never ranked).
+    muted : (k,) bool ndarray, optional
+        Carriers that keep their slots but do not vote (a connectivity carrier that is also a
+        geometric carrier of the same view, read as the latter).
     """
 
     carriers: np.ndarray
@@ -68,11 +71,13 @@ class Analysis:
     scale: np.ndarray
     regular: bool
     geometric: bool = False
+    muted: np.ndarray | None = None
 
     def subset(self, which: np.ndarray) -> Analysis:
         """The carriers selected by ``which`` (a boolean mask or indices)."""
         return Analysis(self.carriers[which], self.slot_hash[which], self.z[which], self.mu[which],
-                        self.axes[which], self.lam[which], self.scale[which], self.regular, self.geometric)
+                        self.axes[which], self.lam[which], self.scale[which], self.regular, self.geometric,
+                        None if self.muted is None else self.muted[which])
 
 
 #: vertices from which equal priorities are told apart by geometry: on smaller meshes a carrier's

@@ -85,17 +85,19 @@ def _soft_values(analyses: list[Analysis], adaptive: int) -> list[np.ndarray]:
     """
     out = []
     for a in analyses:
-        if adaptive and len(a.z):
-            zc = a.z - adaptive_threshold(a.z)
-            w = float(np.median(np.abs(zc))) or 1.0
+        live = a.z if a.muted is None else a.z[~a.muted]
+        if adaptive and len(live):
+            zc = a.z - adaptive_threshold(live)
+            w = float(np.median(np.abs(zc if a.muted is None else zc[~a.muted]))) or 1.0
             if adaptive == SCALED:
                 weight = a.scale / (float(np.median(a.scale)) or 1.0)
                 x = np.clip(zc / w, -SCALED_CLIP, SCALED_CLIP) * weight
-                out.append(x / (float(np.abs(x).max()) or 1.0))
+                x = x / (float(np.abs(x).max()) or 1.0)
             else:
-                out.append(np.clip(zc / w, -1.0, 1.0))
+                x = np.clip(zc / w, -1.0, 1.0)
         else:
-            out.append(np.where(a.z > 0, 1.0, -1.0))
+            x = np.where(a.z > 0, 1.0, -1.0)
+        out.append(x if a.muted is None else np.where(a.muted, 0.0, x))
     return out
 
 
@@ -121,7 +123,11 @@ def _votes(analyses: list[Analysis], values: list[np.ndarray], key: str | bytes,
     key_u = ("centred", id(values))
     if key_u not in cache or cache[key_u][0] is not values:
         u = np.concatenate(values)
-        cache[key_u] = (values, u - u.mean())
+        muted = [a.muted if a.muted is not None else np.zeros(len(a.z), bool) for a in analyses]
+        live = ~np.concatenate(muted) if muted else np.ones(len(u), bool)
+        if live.any():
+            u = np.where(live, u - u[live].mean(), 0.0)  # muted carriers stay out of every sum
+        cache[key_u] = (values, u)
     return s, cache[key_u][1], 1.0 - 2.0 * whitening(key, L)
 
 

@@ -127,6 +127,13 @@ def budget_cap(moves: np.ndarray, rms: float, n: int) -> float:
 #: under an RMS budget every carrier's margin may go down to this share of the strength before the
 #: largest moves are left out (found by MARGIN_STEPS halvings)
 MIN_MARGIN, MARGIN_STEPS = 0.4, 12
+#: the geometric layer's margin, as a share of the connectivity layer's: its carriers are for the
+#: re-triangulations (that keep their surviving vertices in place), so they need less margin than
+#: noise asks for, and leave more of the RMS budget to the connectivity layer (engine table, 20
+#: rows, one draw: 1.0 / 0.6 / 0.4 read 287 / 289 / 289 cells; 0.6 gained beetle planes' noise
+#: 0.3 % 0/2 -> 2/2 and beetle ellipsoids' quadric 30 %, lost rocker-arm ellipsoids' meshopt 10 %;
+#: 0.4 lost the counter's and horse ellipsoids' quadric 50 %)
+GEOMETRIC_MARGIN = 0.6
 #: rounds after which a mesh with geometric carriers stops when at most SETTLED of its carriers
 #: still read wrong: cells whose nearest vertex flips with the moves around it never settle (on the
 #: bunny 28 carriers of 11,400 kept flipping between two states from round 5 on)
@@ -327,6 +334,7 @@ class _Mesh:
         self.key, self.method, self.tol, self.placement, self.diag = key, method, tol, placement, diagonal
         self.local = analyse(v0, faces, key, method, adj=adj, labels=labels, tol=tol)
         self.local0 = self.local.carriers
+        self.followed = False  # the placement's frame was made again at the moved positions
         self.geo = self._geometric()
         self.skipped = np.zeros(len(v0), bool)
         self.held = np.zeros(len(v0), bool)
@@ -339,8 +347,6 @@ class _Mesh:
     def _geometric(self) -> Analysis | None:
         if self.placement is None:
             return None
-        if np.any(self.v != self.v0):
-            self.placement = follow(self.placement, self.v, self.faces)
         got = analyse_geometric(self.v, self.adj, self.key, [self.method], self.placement, self.tol)
         return got[self.method]
 
@@ -350,21 +356,21 @@ class _Mesh:
         L = len(codeword)
         a, g = self.local, self.geo
         in_g = np.zeros(len(self.v), bool)
-        # (analysis, bits, carriers it may move): the geometric layer first (it reads a vertex
-        # that is a carrier of both layers)
-        layers: list[tuple[Analysis, np.ndarray, np.ndarray]] = []
+        # (analysis, bits, carriers it may move, share of the margin): the geometric layer first
+        # (it reads a vertex that is a carrier of both layers)
+        layers: list[tuple[Analysis, np.ndarray, np.ndarray, float]] = []
         if g is not None and len(g.carriers):
             in_g[g.carriers] = True
             layers.append((g, codeword[(g.slot_hash % np.uint64(L)).astype(np.int64)],
-                           np.ones(len(g.carriers), bool)))
-        layers.append((a, codeword[local_slots], ~in_g[a.carriers]))
-        limit = self.margin if r == 1 else 0.5 * self.margin
+                           np.ones(len(g.carriers), bool), GEOMETRIC_MARGIN))
+        layers.append((a, codeword[local_slots], ~in_g[a.carriers], 1.0))
         todo = []
-        for b, bits, free in layers:
+        for b, bits, free, share in layers:
             want = np.where(bits == 0, 1.0, -1.0)
+            limit = share * (self.margin if r == 1 else 0.5 * self.margin)
             bad = (want * b.z < limit) & ~self.skipped[b.carriers] & ~self.held[b.carriers] & free
             if bad.any():
-                todo.append((b, bits, bad))
+                todo.append((b, bits, bad, share))
         if not todo:
             return False
         if g is not None and r > SETTLE_AFTER and \
@@ -374,8 +380,8 @@ class _Mesh:
             return False
 
         def at(m: float) -> list[_Moves]:
-            return [_moves(self.method, b, bits, bad, self.v, self.v0, m, self.cap, self.tol)
-                    for b, bits, bad in todo]
+            return [_moves(self.method, b, bits, bad, self.v, self.v0, share * m, self.cap, self.tol)
+                    for b, bits, bad, share in todo]
 
         moves = at(self.margin)
         if r == 1 and rms_budget is not None:
@@ -442,14 +448,21 @@ class _Mesh:
 
     def reselect(self) -> bool:
         """Choose the geometric carriers again at the current positions (the moves change which
-        vertex is nearest a few cells' centres); True when they changed."""
+        vertex is nearest a few cells' centres, and the surface's frame: on the counter plate by a
+        tenth of a cell, so the frame is made again the first time); True when more than
+        :data:`SETTLED` of them changed (some cells flip between two vertices with every move of
+        their neighbours, and a few carriers more or less the code absorbs)."""
         if self.geo is None:
             return False
+        assert self.placement is not None
+        if not self.followed and np.any(self.v != self.v0):
+            self.placement = follow(self.placement, self.v, self.faces)
+            self.followed = True
         now = self._geometric()
         assert now is not None
-        same = np.array_equal(now.carriers, self.geo.carriers)
+        changed = len(np.setxor1d(now.carriers, self.geo.carriers, assume_unique=True))
         self.geo = now
-        return not same
+        return changed > SETTLED * max(len(now.carriers), 1)
 
 
 def _reselect(vs: list[np.ndarray], faces: list[np.ndarray], adjs: list[Adjacency], labels: list[Labels],

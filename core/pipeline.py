@@ -171,7 +171,7 @@ class _GeometricViews:
         self.doc, self.parts, self.adjs, self.key = doc, parts, adjs, key
         self.methods, self.lengths = methods, lengths
         self._places: list[list[Placement]] | None = None
-        self._first: dict[str, list[Analysis]] | None = None
+        self._first: dict[str, list[Analysis | None]] | None = None
 
     def places(self) -> list[list[Placement]]:
         if self._places is None:
@@ -179,10 +179,11 @@ class _GeometricViews:
                                               self.key) for i, adj in zip(self.parts, self.adjs, strict=True)]
         return self._places
 
-    def view(self, best: bool) -> dict[str, list[Analysis]]:
+    def by_part(self, best: bool) -> dict[str, list[Analysis | None]]:
+        """Per method, each part's geometric analysis (None for a part without one)."""
         if not best and self._first is not None:
             return self._first
-        out: dict[str, list[Analysis]] = {m: [] for m in self.methods}
+        out: dict[str, list[Analysis | None]] = {m: [] for m in self.methods}
         for i, adj, places in zip(self.parts, self.adjs, self.places(), strict=True):
             v = self.doc.parts[i].vertices
             chosen, score = None, -np.inf
@@ -193,11 +194,29 @@ class _GeometricViews:
                 s = max(agreement([a], self.lengths) for a in got.values()) if best else 0.0
                 if s > score:
                     chosen, score = got, s
-            if chosen is not None:
-                for m in self.methods:
-                    out[m].append(chosen[m])
+            for m in self.methods:
+                out[m].append(None if chosen is None else chosen[m])
         if not best:
             self._first = out
+        return out
+
+    def view(self, best: bool) -> dict[str, list[Analysis]]:
+        """The geometric analyses of the parts that have them."""
+        return {m: [a for a in got if a is not None] for m, got in self.by_part(best).items()}
+
+    def both(self, local: dict[str, list[Analysis]]) -> dict[str, list[Analysis]]:
+        """Both layers together at the first placement; a vertex that is a carrier of both counts
+        once, as a geometric carrier (its bit is the geometric layer's: the embedder gives it that
+        one).  Empty without geometric carriers."""
+        first = self.by_part(best=False)
+        if not any(a is not None for got in first.values() for a in got):
+            return {}
+        out: dict[str, list[Analysis]] = {}
+        for m in self.methods:
+            out[m] = []
+            for a, g in zip(local[m], first[m], strict=True):
+                out[m].append(a if g is None else replace(a, muted=np.isin(a.carriers, g.carriers)))
+            out[m] += [g for g in first[m] if g is not None]
         return out
 
 
@@ -778,12 +797,8 @@ def _read_views(doc: MeshDocument, parts: list[int], key: str | bytes, options: 
         return detect_views([(CONNECTIVITY, local)], key, expected)
     geo = _GeometricViews(doc, parts, adjs, key, methods, _codeword_lengths(expected))
 
-    def both() -> dict[str, list[Analysis]]:
-        first = geo.view(best=False)
-        return {m: local[m] + first[m] for m in methods} if any(first.values()) else {}
-
-    return detect_views([(CONNECTIVITY, local), (BOTH, both), (GEOMETRY, lambda: geo.view(best=True))], key,
-                        expected)
+    return detect_views([(CONNECTIVITY, local), (BOTH, lambda: geo.both(local)),
+                         (GEOMETRY, lambda: geo.view(best=True))], key, expected)
 
 
 def _coarsened(doc: MeshDocument, parts: list[int]) -> tuple[MeshDocument, str] | None:
