@@ -194,11 +194,15 @@ def carrier_statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray,
 
 
 def analyse_geometric(vertices: np.ndarray, adj: Adjacency, key: str | bytes, methods: Sequence[str],
-                      placement: Placement, tol: Tolerances = TOL) -> dict[str, Analysis]:
-    """The geometric carriers of a mesh (:func:`core.geosync.geometric_carriers` at ``placement``)
-    and their statistics, one :class:`Analysis` per method (``geometric=True``)."""
+                      placement: Placement, tol: Tolerances = TOL,
+                      chosen: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Analysis]:
+    """The geometric carriers of a mesh (:func:`core.geosync.geometric_carriers` at ``placement``,
+    or ``chosen`` when the caller has them) and their statistics, one :class:`Analysis` per method
+    (``geometric=True``)."""
     v = np.asarray(vertices, np.float64)
-    sel, cell_hash = geometric_carriers(v, adj, placement.frame, placement.axes, placement.rung, key)
+    if chosen is None:
+        chosen = geometric_carriers(v, adj, placement.frame, placement.axes, placement.rung, key)
+    sel, cell_hash = chosen
     return carrier_statistics(v, adj, sel, cell_hash, methods, False, True, tol)
 
 

@@ -347,7 +347,9 @@ class _Mesh:
     def _geometric(self) -> Analysis | None:
         if self.placement is None:
             return None
-        got = analyse_geometric(self.v, self.adj, self.key, [self.method], self.placement, self.tol)
+        # the embedder's placement comes with its carriers at the original positions
+        chosen = self.placement.chosen if self.v is not self.v0 and not np.any(self.v != self.v0) else None
+        got = analyse_geometric(self.v, self.adj, self.key, [self.method], self.placement, self.tol, chosen)
         return got[self.method]
 
     def round(self, r: int, codeword: np.ndarray, local_slots: np.ndarray, rms_budget: float | None,

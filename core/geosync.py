@@ -402,22 +402,23 @@ def area_rung(frame: SurfaceFrame) -> int:
 
 
 def choose_rung(vertices: np.ndarray, adj: Adjacency, frame: SurfaceFrame, axes: np.ndarray,
-                key: str | bytes) -> tuple[int, int]:
+                key: str | bytes) -> tuple[int, tuple[np.ndarray, np.ndarray]]:
     """The finest rung, not below :func:`area_rung`, whose carriers are at most
     :data:`CARRIER_SHARE` of the usable vertices (smaller cells put carriers of neighbouring cells
-    next to each other), and its carrier count.  A simplification leaves fewer vertices and so a
-    coarser rung here: the detector tries the finer ones too (:func:`rung_candidates`)."""
+    next to each other), and its :func:`geometric_carriers`.  A simplification leaves fewer
+    vertices and so a coarser rung here: the detector tries the finer ones too
+    (:func:`rung_candidates`)."""
     lo = area_rung(frame)
     limit = CARRIER_SHARE * int(np.count_nonzero(usable(adj)))
-    counts: dict[int, int] = {}
+    found: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def fits(k: int) -> bool:
-        if k not in counts:
-            counts[k] = len(geometric_carriers(vertices, adj, frame, axes, k, key)[0])
-        return counts[k] <= limit
+        if k not in found:
+            found[k] = geometric_carriers(vertices, adj, frame, axes, k, key)
+        return len(found[k][0]) <= limit
 
     if fits(lo):
-        return lo, counts[lo]
+        return lo, found[lo]
     step = 8
     hi = lo + step
     while not fits(hi) and hi < lo + 8 * step:
@@ -425,7 +426,7 @@ def choose_rung(vertices: np.ndarray, adj: Adjacency, frame: SurfaceFrame, axes:
     while hi - lo > 1:  # fits(hi), not fits(lo)
         mid = (lo + hi) // 2
         lo, hi = (lo, mid) if fits(mid) else (mid, hi)
-    return hi, counts[hi]
+    return hi, found[hi]
 
 
 def rung_candidates(first: int, frame: SurfaceFrame) -> list[int]:
@@ -445,8 +446,13 @@ class Placement:
     frame: SurfaceFrame
     axes: np.ndarray
     rung: int
-    #: the carriers there when the embedder chose it (0 when unknown)
-    count: int = 0
+    #: :func:`geometric_carriers` at the positions the embedder chose it at (None when unknown)
+    chosen: tuple[np.ndarray, np.ndarray] | None = None
+
+    @property
+    def count(self) -> int:
+        """The carriers there when the embedder chose it (0 when unknown)."""
+        return 0 if self.chosen is None else len(self.chosen[0])
 
 
 def embed_placement(vertices: np.ndarray, faces: np.ndarray, adj: Adjacency,
@@ -455,8 +461,8 @@ def embed_placement(vertices: np.ndarray, faces: np.ndarray, adj: Adjacency,
     frame = surface_frame(vertices, faces)
     if frame is None:
         return None
-    rung, count = choose_rung(vertices, adj, frame, frame.axes, key)
-    return Placement(frame, frame.axes, rung, count)
+    rung, chosen = choose_rung(vertices, adj, frame, frame.axes, key)
+    return Placement(frame, frame.axes, rung, chosen)
 
 
 def follow(placement: Placement, vertices: np.ndarray, faces: np.ndarray) -> Placement:
