@@ -485,7 +485,8 @@ class _MethodDecoder:
                 slots, raw, sign = _votes(analyses, self.values[adaptive], key, L, ranked, cache)
                 if len(slots):
                     sums = _slot_sums(slots, raw, sign)
-                    if _agreement_z(slots, raw, self.reps) >= MIN_AGREEMENT:
+                    # an expected payload's one length is always decoded: its bit errors are asked for
+                    if self.expected is not None or _agreement_z(slots, raw, self.reps) >= MIN_AGREEMENT:
                         gathered.append((L, ns, slots, raw, sign, sums))
             hit = self._explicit_batch(gathered)
             if hit is not None:
