@@ -851,13 +851,24 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
     rng = np.random.default_rng(0)
     cw = rng.integers(0, 2, codeword_length(None)).astype(np.uint8)
     key = options.key if options.key is not None else _CAPACITY_KEY
-    vs, stats, _ = embed_parts([(doc.parts[i].vertices, doc.parts[i].faces) for i in parts], key,
-                               cw, method, s, quantize=_part_quantizer(doc, parts, doc.decimals))
+    meshes = [(doc.parts[i].vertices, doc.parts[i].faces) for i in parts]
+    prepared = prepare([v for v, _ in meshes], [f for _, f in meshes])
+    # the embedding an embed with the key-derived code would make: both layers, the RMS budget at
+    # the default strength, so that the expected distortion is the one the embed reports
+    diagonal = bbox_diagonal(np.concatenate([p.vertices for p in doc.parts])) or 1.0
+    vs, stats, _ = embed_parts(meshes, key, cw, method, s, quantize=_part_quantizer(doc, parts, doc.decimals),
+                               prepared=prepared, diagonal=diagonal,
+                               rms_budget=BUDGET_AIM * RMS_BUDGETS[0] if options.strength is None else None,
+                               placements=_placements(meshes, prepared, key, len(cw)))
+    geometric = 0
     for k, i in enumerate(parts):
         new[i] = vs[k]
         carriers += stats[k].carriers
+        geo = stats[k].geometric
+        g = 0 if geo is None else len(geo.carriers)
+        geometric += g
         info.append({"name": doc.parts[i].name, "vertices": len(doc.parts[i].vertices),
-                     "carriers": stats[k].carriers})
+                     "carriers": stats[k].carriers, "geometric_carriers": g})
     max_bits = _largest_payload(carriers / CAPACITY_MARGIN)
     if carriers < COMPACT_BELOW:
         max_bits = max(max_bits, COMPACT_MAX_PAYLOAD)  # the compact frame's, when it embeds
@@ -870,7 +881,8 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
     return CapacityReport(method=method, strength=s, carriers=carriers, max_payload_bits=max_bits,
                           copies_of_default=round(carriers / codeword_length(None), 3),
                           codeword_bits_default=codeword_length(None), payload_bits_by_copies=by_copies,
-                          expected_rms_displacement=rms, expected_max_displacement=mx, parts=info)
+                          expected_rms_displacement=rms, expected_max_displacement=mx, parts=info,
+                          geometric_carriers=geometric)
 
 
 #: payload lengths capacity verifies, longest first, below the carrier-count bound

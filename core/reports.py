@@ -89,6 +89,9 @@ class CapacityReport(_Report):
     expected_max_displacement: float
     payload_bits_by_copies: dict[str, int] = field(default_factory=dict)  # copies -> largest payload
     parts: list[dict[str, Any]] = field(default_factory=list)
+    #: carriers of the geometric layer an embedding of the key-derived code would have (0: none; a
+    #: payload whose codeword needs more than a quarter of them gets the connectivity layer only)
+    geometric_carriers: int = 0
 
 @dataclass(frozen=True)
 class EmbeddedFile:
