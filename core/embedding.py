@@ -125,8 +125,9 @@ def budget_cap(moves: np.ndarray, rms: float, n: int) -> float:
 
 
 #: under an RMS budget every carrier's margin may go down to this share of the strength before the
-#: largest moves are left out (found by MARGIN_STEPS halvings)
-MIN_MARGIN, MARGIN_STEPS = 0.4, 12
+#: largest moves are left out, and up to MAX_MARGIN times it where the marks cost less than the
+#: budget (found by MARGIN_STEPS halvings)
+MIN_MARGIN, MAX_MARGIN, MARGIN_STEPS = 0.4, 2.0, 12
 #: the geometric layer's margin, as a share of the connectivity layer's: its carriers are for the
 #: re-triangulations (that keep their surviving vertices in place), so they need less margin than
 #: noise asks for, and leave more of the RMS budget to the connectivity layer (engine table, 20
@@ -366,13 +367,23 @@ class _Mesh:
             layers.append((g, codeword[(g.slot_hash % np.uint64(L)).astype(np.int64)],
                            np.ones(len(g.carriers), bool), GEOMETRIC_MARGIN))
         layers.append((a, codeword[local_slots], ~in_g[a.carriers], 1.0))
-        todo = []
-        for b, bits, free, share in layers:
-            want = np.where(bits == 0, 1.0, -1.0)
-            limit = share * (self.margin if r == 1 else 0.5 * self.margin)
-            bad = (want * b.z < limit) & ~self.skipped[b.carriers] & ~self.held[b.carriers] & free
-            if bad.any():
-                todo.append((b, bits, bad, share))
+        def needing(m: float, limit: float) -> list[tuple[Analysis, np.ndarray, np.ndarray, float]]:
+            out = []
+            for b, bits, free, share in layers:
+                want = np.where(bits == 0, 1.0, -1.0)
+                bad = (want * b.z < share * limit) & ~self.skipped[b.carriers] & ~self.held[b.carriers] & free
+                if bad.any():
+                    out.append((b, bits, bad, share))
+            return out
+
+        def at(m: float, todo: list[tuple[Analysis, np.ndarray, np.ndarray, float]]) -> list[_Moves]:
+            return [_moves(self.method, b, bits, bad, self.v, self.v0, share * m, self.cap, self.tol)
+                    for b, bits, bad, share in todo]
+
+        todo = needing(self.margin, self.margin if r == 1 else 0.5 * self.margin)
+        if r == 1 and rms_budget is not None:
+            self.margin = self._margin_within(lambda m: at(m, needing(m, m)), rms_budget)
+            todo = needing(self.margin, self.margin)
         if not todo:
             return False
         if g is not None and r > SETTLE_AFTER and \
@@ -380,14 +391,14 @@ class _Mesh:
             # the geometric choice of a few cells flips between two vertices with every move of
             # their neighbours: what is left is too little to matter (the caller verifies)
             return False
-
-        def at(m: float) -> list[_Moves]:
-            return [_moves(self.method, b, bits, bad, self.v, self.v0, share * m, self.cap, self.tol)
-                    for b, bits, bad, share in todo]
-
-        moves = at(self.margin)
+        moves = at(self.margin, todo)
         if r == 1 and rms_budget is not None:
-            moves = self._within(moves, at, rms_budget)
+            # what still does not fit leaves out the largest moves (the code absorbs them)
+            room = (rms_budget * self.diag) ** 2 * len(self.v)
+            effs = np.concatenate([mv.eff[mv.ok] for mv in moves])
+            self.cap = min(self.cap, budget_cap(effs, np.sqrt(room / max(len(self.v), 1)), len(self.v)))
+            for mv in moves:
+                mv.ok &= mv.eff <= self.cap
         idx = np.concatenate([mv.idx for mv in moves])
         new = np.concatenate([mv.new for mv in moves])
         ok = np.concatenate([mv.ok for mv in moves])
@@ -399,28 +410,24 @@ class _Mesh:
         self._reread(idx[ok])
         return True
 
-    def _within(self, moves: list[_Moves], at: Callable[[float], list[_Moves]],
-                budget: float) -> list[_Moves]:
-        """The first round's moves within the RMS budget: one margin for every carrier of the mesh,
-        the largest that keeps it (down to MIN_MARGIN x strength); what still does not fit leaves
-        out the largest moves (the code absorbs them)."""
+    def _margin_within(self, at: Callable[[float], list[_Moves]], budget: float) -> float:
+        """The first round's margin, one for every carrier of the mesh: the largest that keeps the
+        RMS budget, between MIN_MARGIN and MAX_MARGIN x strength (found by MARGIN_STEPS halvings of
+        the interval: a mesh whose marks cost less than the budget at the strength gets stronger
+        ones, up to the budget, and one whose marks cost more gets weaker ones)."""
         room = (budget * self.diag) ** 2 * len(self.v)
 
-        def cost(ms: list[_Moves]) -> float:
-            return sum(float((mv.eff[mv.ok] ** 2).sum()) for mv in ms)
+        def fits(m: float) -> bool:
+            return sum(float((mv.eff[mv.ok] ** 2).sum()) for mv in at(m)) <= room
 
-        if cost(moves) > room:
-            lo, hi = MIN_MARGIN * self.strength, self.margin
-            for _ in range(MARGIN_STEPS):
-                mid = 0.5 * (lo + hi)
-                lo, hi = (mid, hi) if cost(at(mid)) <= room else (lo, mid)
-            self.margin = lo
-            moves = at(lo)
-        effs = np.concatenate([mv.eff[mv.ok] for mv in moves])
-        self.cap = min(self.cap, budget_cap(effs, np.sqrt(room / max(len(self.v), 1)), len(self.v)))
-        for mv in moves:
-            mv.ok &= mv.eff <= self.cap
-        return moves
+        s = self.strength
+        lo, hi = (s, MAX_MARGIN * s) if fits(s) else (MIN_MARGIN * s, s)
+        if lo == s and fits(hi):
+            return hi
+        for _ in range(MARGIN_STEPS):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if fits(mid) else (lo, mid)
+        return lo
 
     def _reread(self, moved_idx: np.ndarray) -> None:
         """Statistics after the vertices ``moved_idx`` moved: the whole analysis of a regular mesh
