@@ -60,3 +60,29 @@ def test_embedded_carriers_read_the_codeword() -> None:
     fresh = analyse(new, f, "key", "planes")  # the detector's own view agrees with the embedder's
     assert np.array_equal(fresh.carriers, view.carriers) and np.allclose(fresh.z, view.z)
     assert stats.carriers == len(view.carriers) and stats.moved == int(np.any(new != v, axis=1).sum())
+
+
+def _rms(new: np.ndarray, old: np.ndarray) -> float:
+    diag = float(np.linalg.norm(old.max(axis=0) - old.min(axis=0)))
+    return float(np.sqrt(((new - old) ** 2).sum(axis=1).mean())) / diag
+
+
+def test_the_rms_budget_spends_itself_on_the_margin() -> None:
+    """Under an RMS budget the first round's margin is the largest that fits (between 0.4 and 2 x
+    the strength): a budget the marks would exceed lowers every carrier's margin before any carrier
+    is left out (which then read wrong), one they would not reach raises it."""
+    v, f = irregular_sphere(3000, 9)
+    word = encode("key", np.array([1, 0, 1, 1, 0, 1, 1, 1], np.uint8))
+    (free,), _, _ = embed_parts([(v, f)], "key", word, "planes", 0.07)
+    natural = _rms(free, v)
+    for share in (0.8, 1.5):
+        (new,), (stats,), (view,) = embed_parts([(v, f)], "key", word, "planes", 0.07,
+                                                rms_budget=share * natural)
+        got = _rms(new, v)
+        assert got <= share * natural * 1.1  # the rounds after the first add a little
+        if share < 1:
+            assert stats.skipped <= 0.02 * stats.carriers  # a smaller margin, not carriers left out
+        else:
+            assert got > 1.2 * natural  # the room was used: stronger marks
+        slots = assign_slots([view.slot_hash], len(word))[0]
+        assert ((view.z < 0).astype(np.uint8) == word[slots]).mean() > 0.97
