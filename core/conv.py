@@ -72,38 +72,39 @@ def viterbi(llrs: list[np.ndarray]) -> list[np.ndarray]:
     steps = np.array([len(y) // RATE for y in llrs])
     top = int(steps.max())
     b = len(llrs)
-    y = np.zeros((b, top, RATE))
+    half = STATES // 2
+    # the trellises end together: trellis i starts at step top - steps[i] (in state 0) and all are
+    # in their tail, whose inputs are 0, over the last TAIL steps
+    begin = top - steps
+    y = np.zeros((top, b, RATE))
     for i, v in enumerate(llrs):
-        y[i, : steps[i]] = np.asarray(v, np.float64).reshape(-1, RATE)
-    metric = np.full((b, STATES), -1e300)
-    metric[:, 0] = 0.0
+        y[begin[i]:, i] = np.asarray(v, np.float64).reshape(-1, RATE)
+    # branch metrics of every step at once, as (top, b, 2, S / 2, 2): next state ns = 2 j + x has
+    # the predecessors j (_PRED[0]) and j + S / 2 (_PRED[1]), so gathering the predecessors'
+    # metrics is a broadcast of the two halves of the metric vector (the butterfly)
+    bm = np.stack([y[:, :, 0:1] * _SIGN[k, :, 0] + y[:, :, 1:2] * _SIGN[k, :, 1] for k in range(2)],
+                  axis=2).reshape(top, b, 2, half, 2)
+    start = np.full(STATES, -1e300)
+    start[0] = 0.0
+    metric = np.tile(start, (b, 1))
     back = np.zeros((top, b, STATES), bool)
-    # the tail's inputs are 0: transitions into odd states are closed there
-    tail_from = steps - TAIL
-    odd = np.flatnonzero(_INPUT == 1)
-    s0, s1 = _SIGN[..., 0], _SIGN[..., 1]  # (2, S): output signs from either predecessor
-    p0, p1 = _PRED[0], _PRED[1]
+    starts = np.unique(begin[begin > 0])
     for t in range(top):
-        y0, y1 = y[:, t, 0:1], y[:, t, 1:2]
-        c0 = metric[:, p0] + (y0 * s0[0] + y1 * s1[0])
-        c1 = metric[:, p1] + (y0 * s0[1] + y1 * s1[1])
-        pick = c1 > c0
-        metric = np.maximum(c0, c1)
-        if t >= tail_from.min():
-            metric[np.ix_(np.flatnonzero(t >= tail_from), odd)] = -1e300
-        back[t] = pick
-    out = [np.zeros(int(n) - TAIL, np.uint8) for n in steps]
+        if t in starts:
+            metric[begin == t] = start
+        c = metric.reshape(b, 2, half, 1) + bm[t]  # (b, predecessor, S / 2, input)
+        back[t] = (c[:, 1] > c[:, 0]).reshape(b, STATES)
+        metric = np.maximum(c[:, 0], c[:, 1]).reshape(b, STATES)
+        if t >= top - TAIL:
+            metric[:, 1::2] = -1e300
     state = np.zeros(b, np.int64)
     bits = np.zeros((top, b), np.uint8)
-    rows = np.arange(b)
+    flat = back.reshape(top, -1)
+    rows = np.arange(b) * STATES
     for t in range(top - 1, -1, -1):
-        live = t < steps
         bits[t] = state & 1
-        prev = (state >> 1) | (back[t, rows, state].astype(np.int64) << (TAIL - 1))
-        state = np.where(live, prev, state)
-    for i, n in enumerate(steps):
-        out[i] = bits[: int(n) - TAIL, i].copy()
-    return out
+        state = (state >> 1) | (flat[t, rows + state].astype(np.int64) << (TAIL - 1))
+    return [bits[begin[i]:top - TAIL, i].copy() for i in range(b)]
 
 
 def posteriors(llr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
