@@ -34,6 +34,9 @@ _REG = (_PRED << 1) | _INPUT  # (2, S): the K-bit register of the transition
 _PARITY = np.array([bin(r).count("1") & 1 for r in range(1 << K)], np.uint8)
 _OUT = np.stack([_PARITY[_REG & g] for g in GENERATORS])  # (RATE, 2, S)
 _SIGN = (1.0 - 2.0 * _OUT).transpose(1, 2, 0)  # (2, S, RATE)
+# (RATE, 2 S): the branch metric of every transition is one product with the step's two LLRs (signs
+# are +-1, so each term is exact and the sum is rounded once, as ``y0 s0 + y1 s1``)
+_SIGN_T = np.ascontiguousarray(_SIGN.reshape(-1, RATE).T)
 # the two next states of every state, and which of their predecessors it is
 _SUCC = np.stack([(_NEXT << 1) & (STATES - 1), ((_NEXT << 1) | 1) & (STATES - 1)])
 _HIGH = _NEXT >> (TAIL - 1)
@@ -79,20 +82,18 @@ def viterbi(llrs: list[np.ndarray]) -> list[np.ndarray]:
     y = np.zeros((top, b, RATE))
     for i, v in enumerate(llrs):
         y[begin[i]:, i] = np.asarray(v, np.float64).reshape(-1, RATE)
-    # branch metrics of every step at once, as (top, b, 2, S / 2, 2): next state ns = 2 j + x has
-    # the predecessors j (_PRED[0]) and j + S / 2 (_PRED[1]), so gathering the predecessors'
-    # metrics is a broadcast of the two halves of the metric vector (the butterfly)
-    bm = np.stack([y[:, :, 0:1] * _SIGN[k, :, 0] + y[:, :, 1:2] * _SIGN[k, :, 1] for k in range(2)],
-                  axis=2).reshape(top, b, 2, half, 2)
     start = np.full(STATES, -1e300)
     start[0] = 0.0
     metric = np.tile(start, (b, 1))
     back = np.zeros((top, b, STATES), bool)
-    starts = np.unique(begin[begin > 0])
+    starts = {int(t) for t in begin[begin > 0]}
+    # c[:, k, j, x]: into next state ns = 2 j + x from its predecessor j + k S / 2 (_PRED[k]), so
+    # gathering the predecessors' metrics is a broadcast of the metric vector's two halves (the
+    # butterfly), and the branch metrics are one product with the step's LLRs (_SIGN_T)
     for t in range(top):
         if t in starts:
             metric[begin == t] = start
-        c = metric.reshape(b, 2, half, 1) + bm[t]  # (b, predecessor, S / 2, input)
+        c = metric.reshape(b, 2, half, 1) + (y[t] @ _SIGN_T).reshape(b, 2, half, 2)
         back[t] = (c[:, 1] > c[:, 0]).reshape(b, STATES)
         metric = np.maximum(c[:, 0], c[:, 1]).reshape(b, STATES)
         if t >= top - TAIL:
