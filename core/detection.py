@@ -49,18 +49,32 @@ KEY_CODE_MAX_ERRORS = 1
 EXPECTED_P_THRESHOLD = 1e-6
 
 
+def median(x: np.ndarray) -> float:
+    """``float(np.median(x))`` of a 1-D array, bit for bit, in a fraction of its time
+    (the detector takes about a thousand medians of a few hundred values per wrong-key detection
+    of a small file: 41 -> 16 us each for 501 values, 467 -> 106 us for 20,000)."""
+    n = len(x)
+    if not n or np.isnan(x).any():
+        return float("nan")
+    k = n // 2
+    if n % 2:
+        return float(np.partition(x, k)[k])
+    p = np.partition(x, [k - 1, k])
+    return float((p[k - 1] + p[k]) / 2)
+
+
 def adaptive_threshold(z: np.ndarray) -> float:
     """Split of the carriers' statistics into two classes (two-medians), for attacks that shift
     every statistic the same way (noise inflates them, smoothing shrinks them).  Whitening makes
     the two classes about equally large."""
     if len(z) < 8:
         return 0.0
-    t = float(np.median(z))
+    t = median(z)
     for _ in range(8):
         hi, lo = z[z > t], z[z <= t]
         if not len(hi) or not len(lo):
             break
-        t = 0.5 * (float(np.median(hi)) + float(np.median(lo)))
+        t = 0.5 * (median(hi) + median(lo))
     return t
 
 
@@ -88,9 +102,9 @@ def _soft_values(analyses: list[Analysis], adaptive: int) -> list[np.ndarray]:
         live = a.z if a.muted is None else a.z[~a.muted]
         if adaptive and len(live):
             zc = a.z - adaptive_threshold(live)
-            w = float(np.median(np.abs(zc if a.muted is None else zc[~a.muted]))) or 1.0
+            w = median(np.abs(zc if a.muted is None else zc[~a.muted])) or 1.0
             if adaptive == SCALED:
-                weight = a.scale / (float(np.median(a.scale)) or 1.0)
+                weight = a.scale / (median(a.scale) or 1.0)
                 x = np.clip(zc / w, -SCALED_CLIP, SCALED_CLIP) * weight
                 x = x / (float(np.abs(x).max()) or 1.0)
             else:

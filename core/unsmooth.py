@@ -51,7 +51,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from core.analysis import Analysis, statistic
-from core.detection import adaptive_threshold
+from core.detection import adaptive_threshold, median
 from core.eig3 import eigh3
 from core.mesh import Adjacency, neighbour_moments
 from core.slots import assign_slots
@@ -184,7 +184,7 @@ def _statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray, methods: Sequenc
 def _votes(z: np.ndarray) -> np.ndarray:
     """The adaptive variant's clipped soft votes (:func:`core.detection._soft_values`), centred."""
     zc = z - adaptive_threshold(z)
-    w = float(np.median(np.abs(zc))) or 1.0
+    w = median(np.abs(zc)) or 1.0
     u = np.clip(zc / w, -1.0, 1.0)
     return u - u.mean()
 

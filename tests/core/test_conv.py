@@ -79,3 +79,17 @@ def test_a_frame_reads_at_a_slot_snr_hamming_could_not() -> None:
         sums = (1.0 - 2.0 * code) * 0.18 * n + np.sqrt(n) * rng.standard_normal(len(code))
         ok += np.array_equal(conv.viterbi([sums])[0], m)
     assert ok >= 95
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.integers(1, 9), min_size=1, max_size=7), st.integers(0, 2**32 - 1))
+def test_viterbi_is_maximum_likelihood_in_a_batch_of_mixed_lengths(lengths: list[int], seed: int) -> None:
+    """Against exhaustive search: every trellis of a batch of different lengths (they are aligned at
+    their ends, each started in state 0 at its own step) gets the message whose codeword correlates
+    best with its noisy LLRs."""
+    rng = np.random.default_rng(seed)
+    llrs = [rng.normal(0.0, 1.0, conv.coded_length(n)) for n in lengths]
+    for n, y, got in zip(lengths, llrs, conv.viterbi(llrs), strict=True):
+        every = (np.arange(2**n)[:, None] >> np.arange(n)[None, :]) & 1
+        scores = [float(y @ (1.0 - 2.0 * conv.encode(m))) for m in every]
+        assert np.array_equal(got, every[int(np.argmax(scores))])

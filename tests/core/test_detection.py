@@ -3,8 +3,12 @@ acceptance tests and the false-positive figure."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from core import detection
 from core.analysis import Analysis
@@ -171,3 +175,17 @@ def test_cached_votes_follow_the_values_not_their_id() -> None:
     cache: dict = {("centred", id(new)): (old, np.zeros(k))}  # what an id() reused after a free leaves
     _, raw, _ = _votes([a], new, KEY, 76, None, cache)
     assert np.allclose(raw, new[0] - new[0].mean())
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.one_of(st.floats(-1e6, 1e6), st.just(float("nan"))), min_size=0, max_size=60),
+       st.integers(0, 3))
+def test_median_is_numpys_bit_for_bit(values: list[float], decimals: int) -> None:
+    """``detection.median`` replaces ``np.median`` on the detector's hot path: the same float,
+    ties, NaN and empty input included."""
+    x = np.round(np.array(values, np.float64), decimals)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        want = float(np.median(x))
+    got = detection.median(x)
+    assert (np.isnan(got) and np.isnan(want)) or got == want
