@@ -281,6 +281,44 @@ def test_draco_read() -> None:
     assert "draco" in doc.encodings
 
 
+def test_a_dense_draco_stream_is_not_shared_data(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Draco stores a slot and its faces in a few bytes: a 40,000-vertex grid in a 25 KB GLB
+    is one stream decoded once, not data reused for more work than the file holds
+    (counted at 12 bytes a slot it was refused, and so was MeshMark's own Draco output of the
+    48k-vertex horse)."""
+    import DracoPy
+
+    v, faces = grid(200)
+    data = draco_glb(v, faces, DracoPy.encode(v.astype(np.float32), faces, quantization_bits=14,
+                                              compression_level=7))
+    assert (len(v) + len(faces)) > 8 * (len(data) // 12) + gltf.REUSE_ALLOWANCE  # over the plain rule
+    assert len(gltf.read(data, DEFAULT_LIMITS, "glb").parts[0].faces) == len(faces)
+    monkeypatch.setattr(gltf, "DRACO_DENSITY", 1)
+    with pytest.raises(LimitExceededError, match="shared data"):
+        gltf.read(data, DEFAULT_LIMITS, "glb")
+
+
+def test_a_draco_stream_decoded_again_counts_in_full() -> None:
+    """64 primitives on one Draco stream: only its first decode is discounted."""
+    import DracoPy
+
+    v, faces = grid(60)
+    stream = DracoPy.encode(v.astype(np.float32), faces, quantization_bits=14)
+    stream += b"\0" * (-len(stream) % 4)
+    prim = {"attributes": {"POSITION": 0}, "indices": 1, "extensions": {
+        "KHR_draco_mesh_compression": {"bufferView": 0, "attributes": {"POSITION": 0}}}}
+    meta = {
+        "asset": {"version": "2.0"}, "extensionsUsed": ["KHR_draco_mesh_compression"],
+        "meshes": [{"primitives": [prim]} for _ in range(64)],
+        "accessors": [{"componentType": 5126, "count": len(v), "type": "VEC3"},
+                      {"componentType": 5123, "count": faces.size, "type": "SCALAR"}],
+        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": len(stream)}],
+        "buffers": [{"byteLength": len(stream)}],
+    }
+    with pytest.raises(LimitExceededError, match="shared data"):
+        gltf.read(to_glb(meta, stream), DEFAULT_LIMITS, "glb")
+
+
 # ------------------------------------------------------------------------------ hostile streams
 
 
