@@ -12,7 +12,8 @@ Strips and fans are converted to triangles for the engine; POINTS and LINES prim
 bit-exactly within the mesh (UV seams, split normals), and ``slot_to_vertex`` lists every
 ``POSITION`` element of every triangle primitive of the mesh, primitive after primitive (an
 accessor shared by several primitives of the mesh once).  Meshes reusing each other's positions
-may ask for at most :data:`MAX_REUSE` times the work the file's bytes hold.
+may ask for at most :data:`MAX_REUSE` times the work the file's bytes hold (a Draco stream's first
+decode at :data:`DRACO_DENSITY` times less: it holds far more than 12 bytes a slot would).
 
 Nodes are ignored: the engine works on each mesh's *local* coordinates, so a mesh placed by
 several nodes (instancing) is one part, and the watermark moves every instance the same way.
