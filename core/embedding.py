@@ -336,7 +336,8 @@ class _Mesh:
         self.local = analyse(v0, faces, key, method, adj=adj, labels=labels, tol=tol)
         self.local0 = self.local.carriers
         self.followed = False  # the placement's frame was made again at the moved positions
-        self.geo = self._geometric()
+        # the embedder's placement comes with its carriers at the original positions
+        self.geo = self._geometric(None if placement is None else placement.chosen)
         self.skipped = np.zeros(len(v0), bool)
         self.held = np.zeros(len(v0), bool)
         med = float(np.median(self.local.scale)) if len(self.local.scale) else 0.0
@@ -345,11 +346,11 @@ class _Mesh:
         self.strength = strength
         self.margin = strength  # smaller when the RMS budget asks for it
 
-    def _geometric(self) -> Analysis | None:
+    def _geometric(self, chosen: tuple[np.ndarray, np.ndarray] | None = None) -> Analysis | None:
+        """The geometric carriers at the current positions (``chosen``: the placement's own, when
+        they are known to be those) and their statistics."""
         if self.placement is None:
             return None
-        # the embedder's placement comes with its carriers at the original positions
-        chosen = self.placement.chosen if self.v is not self.v0 and not np.any(self.v != self.v0) else None
         got = analyse_geometric(self.v, self.adj, self.key, [self.method], self.placement, self.tol, chosen)
         return got[self.method]
 
@@ -367,7 +368,7 @@ class _Mesh:
             layers.append((g, codeword[(g.slot_hash % np.uint64(L)).astype(np.int64)],
                            np.ones(len(g.carriers), bool), GEOMETRIC_MARGIN))
         layers.append((a, codeword[local_slots], ~in_g[a.carriers], 1.0))
-        def needing(m: float, limit: float) -> list[tuple[Analysis, np.ndarray, np.ndarray, float]]:
+        def needing(limit: float) -> list[tuple[Analysis, np.ndarray, np.ndarray, float]]:
             out = []
             for b, bits, free, share in layers:
                 want = np.where(bits == 0, 1.0, -1.0)
@@ -380,10 +381,10 @@ class _Mesh:
             return [_moves(self.method, b, bits, bad, self.v, self.v0, share * m, self.cap, self.tol)
                     for b, bits, bad, share in todo]
 
-        todo = needing(self.margin, self.margin if r == 1 else 0.5 * self.margin)
+        todo = needing(self.margin if r == 1 else 0.5 * self.margin)
         if r == 1 and rms_budget is not None:
-            self.margin = self._margin_within(lambda m: at(m, needing(m, m)), rms_budget)
-            todo = needing(self.margin, self.margin)
+            self.margin = self._margin_within(lambda m: at(m, needing(m)), rms_budget)
+            todo = needing(self.margin)
         if not todo:
             return False
         if g is not None and r > SETTLE_AFTER and \

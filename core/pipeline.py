@@ -234,6 +234,12 @@ def _reads_back(check: DetectResult, bits: np.ndarray | None) -> bool:
     return check.detected and check.key_derived and check.bit_errors == 0
 
 
+def _file_diagonal(doc: MeshDocument) -> float:
+    """The bounding-box diagonal of all the file's parts (1 for a file of one point): what the
+    displacement ceiling, the RMS budget and the reported distortion refer to."""
+    return bbox_diagonal(np.concatenate([p.vertices for p in doc.parts])) or 1.0
+
+
 def _distortion(doc: MeshDocument, new: list[np.ndarray], adjs: dict[int, Adjacency],
                 hausdorff: bool = True) -> tuple[int, float, float, float]:
     """Vertices moved, RMS and max displacement, and symmetric vertex Hausdorff distance, all
@@ -244,7 +250,7 @@ def _distortion(doc: MeshDocument, new: list[np.ndarray], adjs: dict[int, Adjace
     vertices are in both sets).  Moves are capped well below an edge, so the nearest vertex is in
     that set.
     """
-    diag = bbox_diagonal(np.concatenate([p.vertices for p in doc.parts])) or 1.0
+    diag = _file_diagonal(doc)
     d2 = []
     haus = 0.0
     for i, (p, v) in enumerate(zip(doc.parts, new, strict=True)):
@@ -420,7 +426,7 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
     decs = [decimals] if decimals is None else [decimals, decimals + 2, decimals + 4, 17]
     budgets = [*RMS_BUDGETS, None] if options.strength is None else [None]
     meshes = [(doc.parts[i].vertices, doc.parts[i].faces) for i in parts]
-    diagonal = bbox_diagonal(np.concatenate([p.vertices for p in doc.parts])) or 1.0
+    diagonal = _file_diagonal(doc)
     prepared = prepare([v for v, _ in meshes], [f for _, f in meshes])
     placements = _placements(meshes, prepared, key, L)
     # within the RMS budget the geometric layer's moves leave less to the connectivity layer: when
@@ -855,7 +861,7 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
     prepared = prepare([v for v, _ in meshes], [f for _, f in meshes])
     # the embedding an embed with the key-derived code would make: both layers, the RMS budget at
     # the default strength, so that the expected distortion is the one the embed reports
-    diagonal = bbox_diagonal(np.concatenate([p.vertices for p in doc.parts])) or 1.0
+    diagonal = _file_diagonal(doc)
     vs, stats, _ = embed_parts(meshes, key, cw, method, s, quantize=_part_quantizer(doc, parts, doc.decimals),
                                prepared=prepared, diagonal=diagonal,
                                rms_budget=BUDGET_AIM * RMS_BUDGETS[0] if options.strength is None else None,
