@@ -168,6 +168,22 @@ def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, m
                               labels.regular, False, tol)
 
 
+def ring_boundaries(v: np.ndarray, adj: Adjacency, sel: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """First and second moments of the 1-rings of the vertices ``sel``: the ring means ``mu``,
+    principal axes, moments ``lam`` (clipped at 0) and scale ``sqrt(sum lam)``."""
+    mu, sigma = neighbour_moments(v, adj, sel)
+    lam, axes = eigh3(sigma)
+    lam = np.maximum(lam, 0.0)
+    return mu, axes, lam, np.sqrt(lam.sum(axis=1))
+
+
+def method_moments(method: str, lam: np.ndarray, scale: np.ndarray, tol: Tolerances = TOL) -> np.ndarray:
+    """The moments a method's boundary uses: the ring's, widened by ``tol.alpha`` scale^2 for
+    ``ellipsoids`` (a flat ring's ellipsoid keeps a thickness)."""
+    return lam + tol.alpha * (scale**2)[:, None] if method == "ellipsoids" else lam
+
+
 def carrier_statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray,
                        slot_hash: np.ndarray | Callable[[np.ndarray], np.ndarray], methods: Sequence[str],
                        regular: bool, geometric: bool, tol: Tolerances = TOL) -> dict[str, Analysis]:
@@ -176,10 +192,7 @@ def carrier_statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray,
     Vertices whose neighbourhood is a line or far coarser than the others' (``tol.min_flatness``,
     ``tol.max_scale``) are dropped.  ``slot_hash``: one per vertex of ``sel``, or a function of the
     kept vertices."""
-    mu, sigma = neighbour_moments(v, adj, sel)
-    lam, axes = eigh3(sigma)
-    lam = np.maximum(lam, 0.0)
-    scale = np.sqrt(lam.sum(axis=1))
+    mu, axes, lam, scale = ring_boundaries(v, adj, sel)
     ok = (scale > 0) & (lam[:, 1] > tol.min_flatness * np.maximum(lam[:, 2], 1e-300))
     if ok.any():
         ok &= scale <= tol.max_scale * np.median(scale[ok])
@@ -187,7 +200,7 @@ def carrier_statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray,
     hashes = slot_hash(sel) if callable(slot_hash) else np.asarray(slot_hash)[ok]
     out = {}
     for method in methods:
-        lam_m = lam + tol.alpha * (scale**2)[:, None] if method == "ellipsoids" else lam
+        lam_m = method_moments(method, lam, scale, tol)
         z = statistic(method, v[sel], mu, axes, lam_m, scale, tol)
         out[method] = Analysis(sel, hashes, z, mu, axes, lam_m, scale, regular, geometric)
     return out

@@ -14,10 +14,19 @@ from functools import partial
 
 import numpy as np
 
-from core.analysis import Analysis, analyse, analyse_geometric, prepare, priorities, same_order, statistic
-from core.eig3 import eigh3
+from core.analysis import (
+    Analysis,
+    analyse,
+    analyse_geometric,
+    method_moments,
+    prepare,
+    priorities,
+    ring_boundaries,
+    same_order,
+    statistic,
+)
 from core.geosync import Placement, follow
-from core.mesh import Adjacency, bbox_diagonal, neighbour_moments
+from core.mesh import Adjacency, bbox_diagonal
 from core.slots import assign_slots, ranked_by_default
 from core.sync import Labels, vertex_labels
 from core.tolerances import TOL, Tolerances
@@ -162,11 +171,8 @@ def _refresh(a: Analysis, v: np.ndarray, adj: Adjacency, which: np.ndarray, meth
     ``a``) at positions ``v``: their neighbourhoods moved (a geometric carrier next to them did)."""
     if not which.size:
         return
-    mu, sigma = neighbour_moments(v, adj, a.carriers[which])
-    lam, axes = eigh3(sigma)
-    lam = np.maximum(lam, 0.0)
-    scale = np.sqrt(lam.sum(axis=1))
-    lam_m = lam + tol.alpha * (scale**2)[:, None] if method == "ellipsoids" else lam
+    mu, axes, lam, scale = ring_boundaries(v, adj, a.carriers[which])
+    lam_m = method_moments(method, lam, scale, tol)
     a.mu[which], a.axes[which], a.lam[which], a.scale[which] = mu, axes, lam_m, scale
     a.z[which] = statistic(method, v[a.carriers[which]], mu, axes, lam_m, np.maximum(scale, 1e-300), tol)
 

@@ -50,10 +50,9 @@ from collections.abc import Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from core.analysis import Analysis, statistic
+from core.analysis import Analysis, method_moments, ring_boundaries, statistic
 from core.detection import adaptive_threshold, median
-from core.eig3 import eigh3
-from core.mesh import Adjacency, neighbour_moments
+from core.mesh import Adjacency
 from core.slots import assign_slots
 from core.tolerances import TOL, Tolerances
 
@@ -166,15 +165,12 @@ def _statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray, methods: Sequenc
                 tol: Tolerances) -> dict[str, np.ndarray]:
     """``z`` of the carriers ``sel`` at positions ``v``, per method (0 where the ring is degenerate:
     no vote)."""
-    mu, sigma = neighbour_moments(v, adj, sel)
-    lam, axes = eigh3(sigma)
-    lam = np.maximum(lam, 0.0)
-    scale = np.sqrt(lam.sum(axis=1))
+    mu, axes, lam, scale = ring_boundaries(v, adj, sel)
     ok = scale > 0
     safe = np.where(ok, scale, 1.0)
     out = {}
     for method in methods:
-        lam_m = lam + tol.alpha * (safe**2)[:, None] if method == "ellipsoids" else lam
+        lam_m = method_moments(method, lam, safe, tol)
         with np.errstate(divide="ignore", invalid="ignore"):
             z = statistic(method, v[sel], mu, axes, lam_m, safe, tol)
         out[method] = np.where(ok & np.isfinite(z), z, 0.0)
