@@ -135,7 +135,7 @@ def same_order(before: np.ndarray, after: np.ndarray, adj: Adjacency) -> bool:
 
 def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, methods: Sequence[str],
                     adj: Adjacency | None = None, labels: Labels | None = None,
-                    tol: Tolerances = TOL) -> dict[str, Analysis]:
+                    tol: Tolerances = TOL, prio: np.ndarray | None = None) -> dict[str, Analysis]:
     """Select the carriers of a mesh and read their statistics (the detector's view).
 
     Parameters
@@ -147,6 +147,8 @@ def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, m
         Names from :data:`~core.options.METHODS`.
     adj, labels : optional
         The mesh's adjacency and :func:`~core.sync.vertex_labels`, when the caller has them.
+    prio : (n,) uint64 ndarray, optional
+        The vertices' :func:`priorities` under ``key`` at these positions, when the caller has them.
 
     Returns
     -------
@@ -163,7 +165,9 @@ def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, m
     if labels is None:
         labels = vertex_labels(v, adj)
     salt_s = _key_salts(key)[1]
-    sel = select_carriers(adj, priorities(v, adj, labels, key), labels.usable)
+    if prio is None:
+        prio = priorities(v, adj, labels, key)
+    sel = select_carriers(adj, prio, labels.usable)
     return carrier_statistics(v, adj, sel, lambda chosen: mix64(labels.labels[chosen] ^ salt_s), methods,
                               labels.regular, False, tol)
 
@@ -221,9 +225,9 @@ def analyse_geometric(vertices: np.ndarray, adj: Adjacency, key: str | bytes, me
 
 def analyse(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, method: str,
             adj: Adjacency | None = None, labels: Labels | None = None,
-            tol: Tolerances = TOL) -> Analysis:
+            tol: Tolerances = TOL, prio: np.ndarray | None = None) -> Analysis:
     """:func:`analyse_methods` for one method."""
-    return analyse_methods(vertices, faces, key, [method], adj, labels, tol)[method]
+    return analyse_methods(vertices, faces, key, [method], adj, labels, tol, prio)[method]
 
 
 def prepare(vertices: Sequence[np.ndarray], faces: Sequence[np.ndarray]) -> list[tuple[Adjacency, Labels]]:

@@ -223,15 +223,21 @@ def angular_spectrum(vertices: np.ndarray, faces: np.ndarray, areas: np.ndarray,
     b = ((np.arctan2(cy, cx) + np.pi) * scale).astype(np.int64)
     hist = np.bincount(np.minimum(b, bins - 1), np.sqrt(cx * cx + cy * cy) * ca,
                        minlength=bins).astype(np.float64)
-    for k in np.unique(n[n > 1]):
-        uw = _sub_points(int(k))
-        sel = np.flatnonzero(n == k)
+    # the wider faces (few: 2 % of the 1M-vertex turbine blade's, near the axis), grouped by n
+    wider = np.flatnonzero(~single)
+    by_n = wider[np.argsort(n[wider], kind="stable")]
+    counts = np.bincount(n[wider], minlength=SUBDIVIDE + 1)
+    ends = np.cumsum(counts)
+    for k in map(int, np.flatnonzero(counts)):
+        uw = _sub_points(k)
+        sel = by_n[ends[k] - counts[k]:ends[k]]
         step = max(1, SAMPLE_CHUNK // len(uw))
         for lo in range(0, len(sel), step):
             c = sel[lo:lo + step]
             u, w = uw[None, :, 0], uw[None, :, 1]
-            sx = x[0][c, None] + u * (x[1] - x[0])[c, None] + w * (x[2] - x[0])[c, None]
-            sy = y[0][c, None] + u * (y[1] - y[0])[c, None] + w * (y[2] - y[0])[c, None]
+            x0, y0 = x[0][c], y[0][c]
+            sx = x0[:, None] + u * (x[1][c] - x0)[:, None] + w * (x[2][c] - x0)[:, None]
+            sy = y0[:, None] + u * (y[1][c] - y0)[:, None] + w * (y[2][c] - y0)[:, None]
             mass = np.sqrt(sx * sx + sy * sy) * (areas[c] / (k * k))[:, None]
             b = ((np.arctan2(sy, sx) + np.pi) * scale).astype(np.int64)
             hist += np.bincount(np.minimum(b, bins - 1).ravel(), mass.ravel(), minlength=bins)
@@ -458,7 +464,12 @@ class Placement:
 def embed_placement(vertices: np.ndarray, faces: np.ndarray, adj: Adjacency,
                     key: str | bytes) -> Placement | None:
     """The embedder's placement of a mesh, or ``None`` when its surface has no frame."""
-    frame = surface_frame(vertices, faces)
+    return placement_in(surface_frame(vertices, faces), vertices, adj, key)
+
+
+def placement_in(frame: SurfaceFrame | None, vertices: np.ndarray, adj: Adjacency,
+                 key: str | bytes) -> Placement | None:
+    """:func:`embed_placement` of a mesh whose :func:`surface_frame` the caller made."""
     if frame is None:
         return None
     rung, chosen = choose_rung(vertices, adj, frame, frame.axes, key)

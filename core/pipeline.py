@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -33,14 +34,21 @@ from core.detection import (
 from core.embedding import EmbedStats, Quantize, embed_parts
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, FORMATS, Limits, MeshDocument, MeshPart, read_mesh, weld
-from core.geosync import CARRIER_SHARE, Placement, detect_placements, embed_placement
+from core.geosync import (
+    CARRIER_SHARE,
+    Placement,
+    SurfaceFrame,
+    detect_placements,
+    placement_in,
+    surface_frame,
+)
 from core.hashing import derive
 from core.mesh import Adjacency, adjacency, bbox_diagonal
 from core.options import DEFAULT_METHOD, METHODS, Options
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
 from core.resample import undo_subdivision
 from core.slots import bucketed_slots, own_copy
-from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, Labels
+from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, Labels, vertex_labels
 from core.tolerances import TOL, Tolerances
 from core.unsmooth import MIN_SCORE, choose_iterations, unsmooth
 
@@ -427,8 +435,7 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
     budgets = [*RMS_BUDGETS, None] if options.strength is None else [None]
     meshes = [(doc.parts[i].vertices, doc.parts[i].faces) for i in parts]
     diagonal = _file_diagonal(doc)
-    prepared = prepare([v for v, _ in meshes], [f for _, f in meshes])
-    placements = _placements(meshes, prepared, key, L)
+    prepared, placements = _prepared_placements(meshes, key, L)
     # within the RMS budget the geometric layer's moves leave less to the connectivity layer: when
     # the file then does not read, the budget is tried again without the geometric layer before
     # it is given up (the gear with ellipsoids: 7e-4 of the diagonal otherwise)
@@ -547,16 +554,34 @@ GEOMETRIC_PER_SLOT = 4
 GEOMETRIC_MIN_VERTICES = int(np.ceil(8 * codeword_length(1) / CARRIER_SHARE))
 
 
-def _placements(meshes: list[tuple[np.ndarray, np.ndarray]], prepared: list[tuple[Adjacency, Labels]],
-                key: str | bytes, L: int) -> list[Placement | None]:
-    """Where each mesh's geometric carriers are, or None for a mesh without them (no frame, too
-    few carriers, or too few in the whole file for a codeword of ``L`` bits)."""
+def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str | bytes, L: int
+                         ) -> tuple[list[tuple[Adjacency, Labels]], list[Placement | None]]:
+    """:func:`~core.analysis.prepare` of every mesh and where its geometric carriers are
+    (:func:`_placements`).  The geometric layer needs no labels and its frame no adjacency: a
+    second thread makes the surfaces' frames while this one makes the adjacency, then chooses the
+    geometric carriers while this one makes the labels (numpy and scipy release the GIL in the
+    large array operations of both; the figures are in ``core/README.md``, speed)."""
+    vs = [np.asarray(v, np.float64) for v, _ in meshes]
+    if sum(len(v) for v in vs) < GEOMETRIC_MIN_VERTICES:
+        return prepare(vs, [f for _, f in meshes]), [None] * len(meshes)
+    with ThreadPoolExecutor(1) as pool:
+        frames = pool.submit(lambda: [surface_frame(v, f) for v, f in meshes])
+        adjs = [adjacency(f, len(v)) for v, f in zip(vs, (f for _, f in meshes), strict=True)]
+        # queued behind the frames on the one worker: it runs while the labels are made here
+        placed = pool.submit(lambda: _placements(meshes, adjs, key, L, frames.result()))
+        labels = [vertex_labels(v, adj) for v, adj in zip(vs, adjs, strict=True)]
+        return list(zip(adjs, labels, strict=True)), placed.result()
+
+
+def _placements(meshes: list[tuple[np.ndarray, np.ndarray]], adjs: Sequence[Adjacency], key: str | bytes,
+                L: int, frames: Sequence[SurfaceFrame | None]) -> list[Placement | None]:
+    """Where each mesh's geometric carriers are (``frames``: each mesh's
+    :func:`~core.geosync.surface_frame`), or None for a mesh without them (no frame, too few
+    carriers, or too few in the whole file for a codeword of ``L`` bits)."""
     out: list[Placement | None] = []
     total = 0
-    if sum(len(v) for v, _ in meshes) < GEOMETRIC_MIN_VERTICES:
-        return [None] * len(meshes)
-    for (v, f), (adj, _) in zip(meshes, prepared, strict=True):
-        p = embed_placement(v, f, adj, key)
+    for (v, _), adj, frame in zip(meshes, adjs, frames, strict=True):
+        p = placement_in(frame, v, adj, key)
         count = 0 if p is None else p.count
         out.append(p if count >= GEOMETRIC_PART_MIN else None)
         total += count if count >= GEOMETRIC_PART_MIN else 0
@@ -858,14 +883,14 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
     cw = rng.integers(0, 2, codeword_length(None)).astype(np.uint8)
     key = options.key if options.key is not None else _CAPACITY_KEY
     meshes = [(doc.parts[i].vertices, doc.parts[i].faces) for i in parts]
-    prepared = prepare([v for v, _ in meshes], [f for _, f in meshes])
+    prepared, placements = _prepared_placements(meshes, key, len(cw))
     # the embedding an embed with the key-derived code would make: both layers, the RMS budget at
     # the default strength, so that the expected distortion is the one the embed reports
     diagonal = _file_diagonal(doc)
     vs, stats, _ = embed_parts(meshes, key, cw, method, s, quantize=_part_quantizer(doc, parts, doc.decimals),
                                prepared=prepared, diagonal=diagonal,
                                rms_budget=BUDGET_AIM * RMS_BUDGETS[0] if options.strength is None else None,
-                               placements=_placements(meshes, prepared, key, len(cw)))
+                               placements=placements)
     geometric = 0
     for k, i in enumerate(parts):
         new[i] = vs[k]
