@@ -73,6 +73,10 @@ class Analysis:
     geometric: bool = False
     muted: np.ndarray | None = None
 
+    def copy(self) -> Analysis:
+        """A copy whose arrays the embedder may change in place."""
+        return self.subset(np.arange(len(self.carriers)))
+
     def subset(self, which: np.ndarray) -> Analysis:
         """The carriers selected by ``which`` (a boolean mask or indices)."""
         return Analysis(self.carriers[which], self.slot_hash[which], self.z[which], self.mu[which],

@@ -226,7 +226,8 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
                 method: str, strength: float, quantize: Quantize | None = None, tol: Tolerances = TOL,
                 prepared: list[tuple[Adjacency, Labels]] | None = None, rms_budget: float | None = None,
                 diagonal: float | None = None, slot_rule: SlotRule | None = None,
-                placements: Sequence[Placement | None] | None = None
+                placements: Sequence[Placement | None] | None = None,
+                selections: Sequence[tuple[np.ndarray, Analysis]] | None = None
                 ) -> tuple[list[np.ndarray], list[EmbedStats], list[Analysis]]:
     """Move carriers of one or several meshes so that the detector reads ``codeword``.
 
@@ -262,6 +263,10 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
         Per mesh, where its geometric carriers are (:mod:`core.geosync`); they carry the same
         codeword with hashed slots (``cell hash mod L``).  A vertex that is a carrier of both
         layers reads the geometric layer's bit.
+    selections : sequence of (priorities, Analysis), optional
+        Per mesh, the selection priorities under ``key`` and the connectivity layer's analysis
+        (``method``) at the original positions, when the caller made them (they depend on ``tol``
+        only through what :func:`~core.pipeline._capped` leaves alone).
 
     Returns
     -------
@@ -287,8 +292,10 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
     if prepared is None:
         prepared = prepare(v0s, faces)
     places = list(placements) if placements is not None else [None] * len(meshes)
+    chosen0 = list(selections) if selections is not None else [None] * len(meshes)
     states = [_Mesh(v, f, adj, lab, key, method, tol, p, bbox_diagonal(v) if diagonal is None else diagonal,
-                    strength) for v, f, (adj, lab), p in zip(v0s, faces, prepared, places, strict=True)]
+                    strength, sel)
+              for v, f, (adj, lab), p, sel in zip(v0s, faces, prepared, places, chosen0, strict=True)]
     an = [st.local for st in states]
     ranked = ranked_by_default(sum(len(a.carriers) for a in an), L)
 
@@ -336,12 +343,15 @@ class _Mesh:
 
     def __init__(self, v0: np.ndarray, faces: np.ndarray, adj: Adjacency, labels: Labels, key: str | bytes,
                  method: str, tol: Tolerances, placement: Placement | None, diagonal: float,
-                 strength: float) -> None:
+                 strength: float, selection: tuple[np.ndarray, Analysis] | None = None) -> None:
         self.v0, self.v, self.faces, self.adj, self.labels = v0, v0.copy(), faces, adj, labels
         self.key, self.method, self.tol, self.placement, self.diag = key, method, tol, placement, diagonal
+        if selection is None:
+            prio = priorities(v0, adj, labels, key)
+            selection = prio, analyse(v0, faces, key, method, adj=adj, labels=labels, tol=tol, prio=prio)
         #: the selection priorities the connectivity layer was chosen with (:func:`_reselect`)
-        self.prio = priorities(v0, adj, labels, key)
-        self.local = analyse(v0, faces, key, method, adj=adj, labels=labels, tol=tol, prio=self.prio)
+        self.prio = selection[0]
+        self.local = selection[1].copy()
         self.local0 = self.local.carriers
         self.followed = False  # the placement's frame was made again at the moved positions
         # the embedder's placement comes with its carriers at the original positions

@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 
 from core import gf2
-from core.analysis import Analysis, analyse_geometric, analyse_methods, prepare
+from core.analysis import Analysis, analyse_geometric, analyse_methods, prepare, priorities
 from core.coding import (
     COMPACT_BELOW,
     COMPACT_BITS,
@@ -435,7 +435,7 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
     budgets = [*RMS_BUDGETS, None] if options.strength is None else [None]
     meshes = [(doc.parts[i].vertices, doc.parts[i].faces) for i in parts]
     diagonal = _file_diagonal(doc)
-    prepared, placements = _prepared_placements(meshes, key, L)
+    prepared, placements, selections = _prepared_placements(meshes, key, L, method)
     # within the RMS budget the geometric layer's moves leave less to the connectivity layer: when
     # the file then does not read, the budget is tried again without the geometric layer before
     # it is given up (the gear with ellipsoids: 7e-4 of the diagonal otherwise)
@@ -458,7 +458,7 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
         for _ in range(BUDGET_RETRIES + 1):
             vs, stats, final = embed_parts(meshes, key, codeword, method, s, tol=tol, prepared=prepared,
                                            quantize=_part_quantizer(doc, parts, dec), rms_budget=aim,
-                                           diagonal=diagonal,
+                                           diagonal=diagonal, selections=selections,
                                            placements=placements if with_geo else [None] * len(meshes))
             new = _with_parts(doc, parts, vs)
             if budget is None or aim is None:
@@ -554,23 +554,30 @@ GEOMETRIC_PER_SLOT = 4
 GEOMETRIC_MIN_VERTICES = int(np.ceil(8 * codeword_length(1) / CARRIER_SHARE))
 
 
-def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str | bytes, L: int
-                         ) -> tuple[list[tuple[Adjacency, Labels]], list[Placement | None]]:
-    """:func:`~core.analysis.prepare` of every mesh and where its geometric carriers are
-    (:func:`_placements`).  The geometric layer needs no labels and its frame no adjacency: a
-    second thread makes the surfaces' frames while this one makes the adjacency, then chooses the
-    geometric carriers while this one makes the labels (numpy and scipy release the GIL in the
-    large array operations of both; the figures are in ``core/README.md``, speed)."""
+def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str | bytes, L: int, method: str
+                         ) -> tuple[list[tuple[Adjacency, Labels]], list[Placement | None],
+                                    list[tuple[np.ndarray, Analysis]] | None]:
+    """:func:`~core.analysis.prepare` of every mesh, where its geometric carriers are
+    (:func:`_placements`) and, for a file that may have them, its connectivity layer's selection
+    (priorities and analysis with ``method``, as :func:`~core.embedding.embed_parts` takes them).
+    The geometric layer needs no labels and its frame no adjacency: a second thread makes the
+    surfaces' frames while this one makes the adjacency, then chooses the geometric carriers while
+    this one makes the labels and the selection (numpy and scipy release the GIL in the large
+    array operations of both; the figures are in ``core/README.md``, speed)."""
     vs = [np.asarray(v, np.float64) for v, _ in meshes]
     if sum(len(v) for v in vs) < GEOMETRIC_MIN_VERTICES:
-        return prepare(vs, [f for _, f in meshes]), [None] * len(meshes)
+        return prepare(vs, [f for _, f in meshes]), [None] * len(meshes), None
     with ThreadPoolExecutor(1) as pool:
         frames = pool.submit(lambda: [surface_frame(v, f) for v, f in meshes])
-        adjs = [adjacency(f, len(v)) for v, f in zip(vs, (f for _, f in meshes), strict=True)]
+        adjs = [adjacency(f, len(v)) for v, (_, f) in zip(vs, meshes, strict=True)]
         # queued behind the frames on the one worker: it runs while the labels are made here
         placed = pool.submit(lambda: _placements(meshes, adjs, key, L, frames.result()))
-        labels = [vertex_labels(v, adj) for v, adj in zip(vs, adjs, strict=True)]
-        return list(zip(adjs, labels, strict=True)), placed.result()
+        prepared = [(adj, vertex_labels(v, adj)) for v, adj in zip(vs, adjs, strict=True)]
+        selections = []
+        for v, (_, f), (adj, lab) in zip(vs, meshes, prepared, strict=True):
+            prio = priorities(v, adj, lab, key)
+            selections.append((prio, analyse_methods(v, f, key, [method], adj, lab, TOL, prio)[method]))
+        return prepared, placed.result(), selections
 
 
 def _placements(meshes: list[tuple[np.ndarray, np.ndarray]], adjs: Sequence[Adjacency], key: str | bytes,
@@ -883,14 +890,14 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
     cw = rng.integers(0, 2, codeword_length(None)).astype(np.uint8)
     key = options.key if options.key is not None else _CAPACITY_KEY
     meshes = [(doc.parts[i].vertices, doc.parts[i].faces) for i in parts]
-    prepared, placements = _prepared_placements(meshes, key, len(cw))
+    prepared, placements, selections = _prepared_placements(meshes, key, len(cw), method)
     # the embedding an embed with the key-derived code would make: both layers, the RMS budget at
     # the default strength, so that the expected distortion is the one the embed reports
     diagonal = _file_diagonal(doc)
     vs, stats, _ = embed_parts(meshes, key, cw, method, s, quantize=_part_quantizer(doc, parts, doc.decimals),
                                prepared=prepared, diagonal=diagonal,
                                rms_budget=BUDGET_AIM * RMS_BUDGETS[0] if options.strength is None else None,
-                               placements=placements)
+                               placements=placements, selections=selections)
     geometric = 0
     for k, i in enumerate(parts):
         new[i] = vs[k]

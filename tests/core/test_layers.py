@@ -10,7 +10,13 @@ import meshoptimizer
 import numpy as np
 import pytest
 
+from core.analysis import analyse_geometric
 from core.api import detect_mesh, embed_mesh
+from core.coding import encode
+from core.embedding import _Mesh, embed_parts
+from core.geosync import rung_size
+from core.pipeline import _prepared_placements
+from core.tolerances import TOL
 from tests.core.meshes import irregular_sphere, similarity
 
 PAYLOAD = "10110011100011110000101011001010"
@@ -35,12 +41,18 @@ def _simplified(v: np.ndarray, f: np.ndarray, fraction: float) -> tuple[np.ndarr
     return _drop_unreferenced(v, out[:n].reshape(-1, 3).astype(np.int64))
 
 
+def _lopsided() -> tuple[np.ndarray, np.ndarray]:
+    """An irregular closed surface of 20,000 vertices with three distinct principal axes and a
+    lopsided bump (third moments far from 0)."""
+    v, f = irregular_sphere(20000, 7)
+    bump = 0.3 * np.exp(-8.0 * ((v - [0.8, 0.3, 0.0]) ** 2).sum(axis=1))[:, None]
+    return v * np.array([1.6, 1.0, 0.7]) + bump, f
+
+
 @pytest.fixture(scope="module")
 def marked() -> tuple[np.ndarray, np.ndarray, object]:
-    """An irregular closed surface of 20,000 vertices with three distinct principal axes and a
-    lopsided bump (third moments far from 0), marked with planes."""
-    v, f = irregular_sphere(20000, 7)
-    v = v * np.array([1.6, 1.0, 0.7]) + 0.3 * np.exp(-8.0 * ((v - [0.8, 0.3, 0.0]) ** 2).sum(axis=1))[:, None]
+    """:func:`_lopsided`, marked with planes."""
+    v, f = _lopsided()
     new, report = embed_mesh(v, f, KEY, payload=PAYLOAD, method="planes")
     return new, f, report
 
@@ -76,3 +88,57 @@ def test_a_crop_reads_with_the_connectivity_layer(marked) -> None:
     cv, cf = _drop_unreferenced(v, f[keep])
     res = detect_mesh([(cv, cf)], KEY)
     assert res.detected and res.payload == PAYLOAD and res.layer == "connectivity"
+
+
+def test_the_selections_made_beside_the_frame_change_nothing() -> None:
+    """embed_parts with the connectivity selection that _prepared_placements made (in parallel with
+    the geometric layer's frame) moves exactly what it moves without it, however often it is
+    reused (the budget's retries reuse it: the embedder must not change it in place)."""
+    v, f = _lopsided()
+    word = encode(KEY, np.array([int(c) for c in PAYLOAD], np.uint8))
+    prepared, placements, selections = _prepared_placements([(v, f)], KEY, len(word), "planes")
+    assert placements[0] is not None and selections is not None
+    kept = [(p.copy(), a.z.copy(), a.mu.copy()) for p, a in selections]
+    plain = embed_parts([(v, f)], KEY, word, "planes", 0.07, prepared=prepared, placements=placements,
+                        rms_budget=1.9e-4)[0][0]
+    for _ in range(2):
+        got = embed_parts([(v, f)], KEY, word, "planes", 0.07, prepared=prepared, placements=placements,
+                          rms_budget=1.9e-4, selections=selections)[0][0]
+        assert np.array_equal(got, plain)
+    for (p, z, mu), (p2, a) in zip(kept, selections, strict=True):
+        assert np.array_equal(p, p2) and np.array_equal(z, a.z) and np.array_equal(mu, a.mu)
+
+
+def test_a_cell_that_changes_hands_after_the_follow_keeps_both_vertices() -> None:
+    """After the follow, a geometric carrier that loses its cell stays among the carriers the rounds
+    move, and a cell going back to it is no change: the ties that flip with every move settle."""
+    v, f = _lopsided()
+    word = encode(KEY, np.array([int(c) for c in PAYLOAD], np.uint8))
+    prepared, placements, _ = _prepared_placements([(v, f)], KEY, len(word), "planes")
+    (adj, labels), placement = prepared[0], placements[0]
+    assert placement is not None
+    st = _Mesh(v, f, adj, labels, KEY, "planes", TOL, placement, 1.0, 0.07)
+    st.followed = True  # the frame as it is: what follows is the rule after the follow
+    assert st.geo is not None and not st.reselect()
+    first = st.geo.carriers.copy()
+    h = rung_size(placement.rung) * placement.frame.rho
+
+    def away(c: int) -> np.ndarray:  # half a cell along an axis: its cell may go to another vertex
+        moved = v.copy()
+        moved[c] = v[c] + 0.5 * h * placement.axes[0]
+        return moved
+
+    def taken(c: int) -> bool:
+        got = analyse_geometric(away(c), adj, KEY, ["planes"], placement)["planes"].carriers
+        return c not in got and len(np.setdiff1d(got, first)) > 0
+
+    c = next(int(c) for c in first if taken(int(c)))
+    st.v[:] = away(c)
+    st.reselect()
+    assert st.view is not None and c not in st.view.carriers and c in st.geo.carriers
+    taker = np.setdiff1d(st.view.carriers, first)
+    assert len(taker) >= 1
+    st.v[c] = v[c]  # back: the cell is its again, and nothing is new
+    assert not st.reselect()
+    assert c in st.view.carriers and set(taker) <= set(st.geo.carriers.tolist())
+    assert set(first) <= set(st.geo.carriers.tolist())
