@@ -360,6 +360,7 @@ class _Mesh:
         #: rounds move, also holds the carriers that lost their cell to a neighbour after the
         #: follow (:meth:`reselect`)
         self.view = self.geo
+        self.dirty = False  # vertices moved since the geometric carriers were last chosen
         self.skipped = np.zeros(len(v0), bool)
         self.held = np.zeros(len(v0), bool)
         med = float(np.median(self.local.scale)) if len(self.local.scale) else 0.0
@@ -430,6 +431,7 @@ class _Mesh:
         self.skipped[idx[~ok]] = True
         placed = new[ok] if quantize is None else quantize(idx[ok], new[ok])
         self.v[idx[ok]] = placed
+        self.dirty = True
         self._reread(idx[ok])
         return True
 
@@ -491,9 +493,10 @@ class _Mesh:
         the vertex they had two selections before, never settling in 12 rounds).  Held, both
         vertices of such a cell read its bit, whichever the detector finds nearest, and a cell is
         counted as changed only when its new carrier was never chosen before."""
-        if self.geo is None:
-            return False
+        if self.geo is None or (self.followed and not self.dirty):
+            return False  # nothing moved since the last choice: the same carriers
         assert self.placement is not None
+        self.dirty = False
         if not self.followed and np.any(self.v != self.v0):
             self.placement = follow(self.placement, self.v, self.faces)
             self.followed = True
