@@ -134,11 +134,12 @@ def test_a_cell_that_changes_hands_after_the_follow_keeps_both_vertices() -> Non
 
     c = next(int(c) for c in first if taken(int(c)))
     st.v[:] = away(c)
+    st.dirty = True  # as a round that moves it
     st.reselect()
     assert st.view is not None and c not in st.view.carriers and c in st.geo.carriers
     taker = np.setdiff1d(st.view.carriers, first)
     assert len(taker) >= 1
-    st.v[c] = v[c]  # back: the cell is its again, and nothing is new
+    st.v[c], st.dirty = v[c], True  # back: the cell is its again, and nothing is new
     assert not st.reselect()
     assert c in st.view.carriers and set(taker) <= set(st.geo.carriers.tolist())
     assert set(first) <= set(st.geo.carriers.tolist())
