@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.eig3 import eigh3
-from core.geosync import Placement, geometric_carriers
+from core.geosync import Placement, Rings, geometric_carriers
 from core.hashing import derive, mix64
 from core.mesh import Adjacency, adjacency, neighbour_moments
 from core.options import METHODS
@@ -176,12 +176,16 @@ def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, m
                               labels.regular, False, tol)
 
 
-def ring_boundaries(v: np.ndarray, adj: Adjacency, sel: np.ndarray
+def ring_boundaries(v: np.ndarray, adj: Adjacency, sel: np.ndarray, rings: Rings | None = None
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """First and second moments of the 1-rings of the vertices ``sel``: the ring means ``mu``,
-    principal axes, moments ``lam`` (clipped at 0) and scale ``sqrt(sum lam)``."""
-    mu, sigma = neighbour_moments(v, adj, sel)
-    lam, axes = eigh3(sigma)
+    principal axes, moments ``lam`` (clipped at 0) and scale ``sqrt(sum lam)`` (``rings``: the
+    mesh's kept ring moments, when the caller has them)."""
+    if rings is None:
+        mu, sigma = neighbour_moments(v, adj, sel)
+        lam, axes = eigh3(sigma)
+    else:
+        mu, lam, axes = rings.moments(sel)
     lam = np.maximum(lam, 0.0)
     return mu, axes, lam, np.sqrt(lam.sum(axis=1))
 
@@ -194,13 +198,14 @@ def method_moments(method: str, lam: np.ndarray, scale: np.ndarray, tol: Toleran
 
 def carrier_statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray,
                        slot_hash: np.ndarray | Callable[[np.ndarray], np.ndarray], methods: Sequence[str],
-                       regular: bool, geometric: bool, tol: Tolerances = TOL) -> dict[str, Analysis]:
+                       regular: bool, geometric: bool, tol: Tolerances = TOL,
+                       rings: Rings | None = None) -> dict[str, Analysis]:
     """Boundaries and statistics of the chosen vertices ``sel``, one :class:`Analysis` per method.
 
     Vertices whose neighbourhood is a line or far coarser than the others' (``tol.min_flatness``,
     ``tol.max_scale``) are dropped.  ``slot_hash``: one per vertex of ``sel``, or a function of the
     kept vertices."""
-    mu, axes, lam, scale = ring_boundaries(v, adj, sel)
+    mu, axes, lam, scale = ring_boundaries(v, adj, sel, rings)
     ok = (scale > 0) & (lam[:, 1] > tol.min_flatness * np.maximum(lam[:, 2], 1e-300))
     if ok.any():
         ok &= scale <= tol.max_scale * np.median(scale[ok])
@@ -216,15 +221,16 @@ def carrier_statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray,
 
 def analyse_geometric(vertices: np.ndarray, adj: Adjacency, key: str | bytes, methods: Sequence[str],
                       placement: Placement, tol: Tolerances = TOL,
-                      chosen: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Analysis]:
+                      chosen: tuple[np.ndarray, np.ndarray] | None = None,
+                      rings: Rings | None = None) -> dict[str, Analysis]:
     """The geometric carriers of a mesh (:func:`core.geosync.geometric_carriers` at ``placement``,
     or ``chosen`` when the caller has them) and their statistics, one :class:`Analysis` per method
-    (``geometric=True``)."""
+    (``geometric=True``); ``rings``: the mesh's kept ring moments, when the caller has them."""
     v = np.asarray(vertices, np.float64)
     if chosen is None:
-        chosen = geometric_carriers(v, adj, placement.frame, placement.axes, placement.rung, key)
+        chosen = geometric_carriers(v, adj, placement.frame, placement.axes, placement.rung, key, rings)
     sel, cell_hash = chosen
-    return carrier_statistics(v, adj, sel, cell_hash, methods, False, True, tol)
+    return carrier_statistics(v, adj, sel, cell_hash, methods, False, True, tol, rings)
 
 
 def analyse(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, method: str,

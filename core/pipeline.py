@@ -37,6 +37,7 @@ from core.formats import DEFAULT_LIMITS, FORMATS, Limits, MeshDocument, MeshPart
 from core.geosync import (
     CARRIER_SHARE,
     Placement,
+    Rings,
     SurfaceFrame,
     detect_placements,
     placement_in,
@@ -180,11 +181,14 @@ class _GeometricViews:
         self.methods, self.lengths = methods, lengths
         self._places: list[list[Placement]] | None = None
         self._first: dict[str, list[Analysis | None]] | None = None
+        # each part's ring moments, kept over the rung search and every placement tried
+        self._rings = [Rings(doc.parts[i].vertices, adj) for i, adj in zip(parts, adjs, strict=True)]
 
     def places(self) -> list[list[Placement]]:
         if self._places is None:
             self._places = [detect_placements(self.doc.parts[i].vertices, self.doc.parts[i].faces, adj,
-                                              self.key) for i, adj in zip(self.parts, self.adjs, strict=True)]
+                                              self.key, rings)
+                            for i, adj, rings in zip(self.parts, self.adjs, self._rings, strict=True)]
         return self._places
 
     def by_part(self, best: bool) -> dict[str, list[Analysis | None]]:
@@ -192,11 +196,11 @@ class _GeometricViews:
         if not best and self._first is not None:
             return self._first
         out: dict[str, list[Analysis | None]] = {m: [] for m in self.methods}
-        for i, adj, places in zip(self.parts, self.adjs, self.places(), strict=True):
+        for i, adj, places, rings in zip(self.parts, self.adjs, self.places(), self._rings, strict=True):
             v = self.doc.parts[i].vertices
             chosen, score = None, -np.inf
             for p in places if best else places[:1]:
-                got = analyse_geometric(v, adj, self.key, self.methods, p)
+                got = analyse_geometric(v, adj, self.key, self.methods, p, rings=rings)
                 if len(next(iter(got.values())).carriers) < GEOMETRIC_PART_MIN:
                     continue
                 s = max(agreement([a], self.lengths) for a in got.values()) if best else 0.0
