@@ -119,7 +119,9 @@ class Rings:
         """Ring means ``(k, 3)``, eigenvalues ``(k, 3)`` ascending and eigenvectors ``(k, 3, 3)``
         (columns) of the neighbours' covariance of the vertices ``which``."""
         which = np.asarray(which, np.int64)
-        missing = np.unique(which[~self._known[which]])
+        ask = np.zeros(len(self._known), bool)
+        ask[which[~self._known[which]]] = True
+        missing = np.flatnonzero(ask)
         if missing.size:
             mu, sigma = neighbour_moments(self.vertices, self.adj, missing)
             lam, axes = eigh3(sigma)

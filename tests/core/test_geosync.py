@@ -186,3 +186,25 @@ def test_counter_plate_frame_survives_simplification() -> None:
         fr2 = G.surface_frame(v2, f2)
         assert fr2 is not None and fr2.harmonic == 20
         assert min(rotation_angle(c, fr.axes) for c in G.frame_candidates(fr2)) < 0.05
+
+
+def test_kept_rings_are_the_rings_of_any_set_of_vertices() -> None:
+    """Rings.moments gives every vertex the values a direct call on any set containing it gives
+    (repeats, any order, asked before or after), so a detection that keeps them reads as one that
+    does not; in_frame is the matrix product it replaces."""
+    from core.eig3 import eigh3
+    from core.mesh import neighbour_moments
+
+    v, f = irregular_sphere(3000, 5)
+    adj = adjacency(f, len(v))
+    rings = G.Rings(v, adj)
+    rng = np.random.default_rng(1)
+    for _ in range(4):
+        which = rng.integers(0, len(v), 700)  # repeats and overlaps with the earlier asks
+        mu, lam, axes = rings.moments(which)
+        mu0, sigma = neighbour_moments(v, adj, which)
+        lam0, axes0 = eigh3(sigma)
+        assert np.array_equal(mu, mu0) and np.array_equal(lam, lam0) and np.array_equal(axes, axes0)
+    rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    origin = rng.normal(size=3)
+    assert G.in_frame(v, origin, rot) == pytest.approx((v - origin) @ rot.T, abs=1e-12)
