@@ -88,26 +88,32 @@ def _labels(faces: np.ndarray, n: int, opp: np.ndarray) -> np.ndarray | None:
     if not seeds.any() or (valence == 6).mean() < MIN_REGULAR_SHARE:
         return None
     lab[seeds] = EVEN
+    # the rules per face corner column (reductions along the rows of (m, 3) arrays are several
+    # times slower: 0.25 s a round on the 2M faces of the 1M-vertex benchmark mesh)
+    fc = [np.ascontiguousarray(faces[:, c]) for c in range(3)]
+    oc = [np.ascontiguousarray(opp[:, c]) for c in range(3)]
     for _ in range(MAX_ROUNDS):
         before = lab.copy()
-        lf = lab[faces]
-        clean = ~(lf == BAD).any(axis=1)
-        even_in = clean & (lf == EVEN).any(axis=1)
-        # neighbours of an even vertex are odd
-        set_odd = faces[even_in][lf[even_in] != EVEN]
-        # centre faces: across each edge an even vertex
-        centre = clean & (lf == ODD).all(axis=1)
-        set_even = opp[centre].ravel()
-        # corner faces: across the odd-odd edge an odd vertex
-        corner = even_in & ((lf == ODD).sum(axis=1) == 2)
-        if corner.any():
-            ce = np.argmax(lf[corner] == EVEN, axis=1)  # position of the even corner
-            j = (ce + 1) % 3  # edge (j, j+1) is the odd-odd one
-            set_odd = np.concatenate([set_odd, opp[np.flatnonzero(corner), j]])
+        lf = [lab[f] for f in fc]
+        clean = (lf[0] != BAD) & (lf[1] != BAD) & (lf[2] != BAD)
+        even = [x == EVEN for x in lf]
+        odd = [x == ODD for x in lf]
+        even_in = clean & (even[0] | even[1] | even[2])
         to_odd = np.zeros(n, bool)
-        to_odd[set_odd[set_odd >= 0]] = True
         to_even = np.zeros(n, bool)
-        to_even[set_even[set_even >= 0]] = True
+        for c in range(3):
+            # neighbours of an even vertex are odd
+            to_odd[fc[c][even_in & ~even[c]]] = True
+        # centre faces: across each edge an even vertex
+        centre = clean & odd[0] & odd[1] & odd[2]
+        for c in range(3):
+            across = oc[c][centre]
+            to_even[across[across >= 0]] = True
+        # corner faces: across the odd-odd edge (the one after the even corner) an odd vertex
+        corner = even_in & (odd[0].astype(np.int8) + odd[1] + odd[2] == 2)
+        for c in range(3):
+            across = oc[(c + 1) % 3][corner & even[c]]
+            to_odd[across[across >= 0]] = True
         bad = (to_odd & (to_even | (lab == EVEN))) | (to_even & (lab == ODD))
         lab[to_odd & (lab != BAD)] = ODD
         lab[to_even & (lab != BAD)] = EVEN
