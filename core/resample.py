@@ -246,16 +246,19 @@ def _undo_sqrt3(vertices: np.ndarray, faces: np.ndarray) -> tuple[str, np.ndarra
     lab[deg != 6] = EVEN  # old
     if not (lab == EVEN).any():
         return None
+    fc = [np.ascontiguousarray(faces[:, c]) for c in range(3)]  # per column, as in _labels
     for _ in range(MAX_ROUNDS):
         before = lab.copy()
-        lf = lab[faces]
-        clean = ~(lf == BAD).any(axis=1)
-        one_old = clean & ((lf == EVEN).sum(axis=1) == 1)
+        lf = [lab[f] for f in fc]
+        clean = (lf[0] != BAD) & (lf[1] != BAD) & (lf[2] != BAD)
+        unknown = [x == UNKNOWN for x in lf]
+        one_old = clean & ((lf[0] == EVEN).astype(np.int8) + (lf[1] == EVEN) + (lf[2] == EVEN) == 1)
+        two_new = clean & ((lf[0] == ODD).astype(np.int8) + (lf[1] == ODD) + (lf[2] == ODD) == 2)
         to_new = np.zeros(n, bool)
-        to_new[faces[one_old][lf[one_old] == UNKNOWN]] = True
-        two_new = clean & ((lf == ODD).sum(axis=1) == 2)
         to_old = np.zeros(n, bool)
-        to_old[faces[two_new][lf[two_new] == UNKNOWN]] = True
+        for c in range(3):
+            to_new[fc[c][one_old & unknown[c]]] = True
+            to_old[fc[c][two_new & unknown[c]]] = True
         bad = to_new & to_old
         lab[to_new & ~bad & (lab == UNKNOWN)] = ODD
         lab[to_old & ~bad & (lab == UNKNOWN)] = EVEN
