@@ -26,7 +26,7 @@ from bench.common import KEY, environment, header, json_child, md_table, mesh_pa
 
 ONE_MILLION = "turbineblade.ply x2 midpoint, cut to 1M"
 SIZES = [("10k", "rocker-arm.obj"), ("100k", "turbineblade.ply"), ("1M", ONE_MILLION)]
-OPS = ["embed", "detect", "detect-auto", "capacity", "trimesh-ply", "trimesh-obj"]
+OPS = ["embed", "detect", "detect-auto", "detect-wrong", "capacity", "trimesh-ply", "trimesh-obj"]
 
 
 def _status_kib(field: str) -> int | None:
@@ -77,8 +77,11 @@ def worker(argv: list[str]) -> None:
             if save:
                 save.write_bytes(emb.data)
             return {"carriers": emb.report.carriers, "copies": emb.report.copies}
-        if op in ("detect", "detect-auto"):
-            r = detect_file(data, KEY, filename=path.name, method="ellipsoids" if op == "detect" else None)
+        if op in ("detect", "detect-auto", "detect-wrong"):
+            # detect-wrong: another key, so that nothing reads and every view is tried (what a caller
+            # who guesses keys costs the service)
+            r = detect_file(data, KEY + ("-wrong" if op == "detect-wrong" else ""), filename=path.name,
+                            method=None if op == "detect-auto" else "ellipsoids")
             return {"detected": r.detected, "carriers": r.carriers}
         if op == "capacity":
             return {"carriers": capacity_file(data, filename=path.name, method="ellipsoids").carriers}
@@ -223,7 +226,9 @@ def write_report(result: dict[str, Any], out_dir: Path) -> None:
                 "current RSS just before it); 'growth' = peak minus the RSS before the call.",
                 "- embed/capacity: ellipsoids, default strength; detect: key + method given; "
                 "detect-auto: key only "
-                "(both methods tried). Ratios: MeshMark time / trimesh `load` + `export` of the same file.",
+                "(both methods tried); detect-wrong: the marked file with another key, method given (nothing "
+                "reads, so every view is tried: what a caller guessing keys costs). Ratios: MeshMark time / "
+                "trimesh `load` + `export` of the same file.",
                 "- 1M: `turbineblade.ply` subdivided twice (midpoint, `trimesh.remesh.subdivide`: "
                 "1,592,274 vertices) and cut across its longest axis to 1,000,000 vertices, written as "
                 "binary PLY in a temporary directory (`bench.speed.make_1m`).",
