@@ -30,7 +30,7 @@ from core.detection import (
     detect_analyses,
     detect_views,
 )
-from core.embedding import EmbedStats, Quantize, embed_parts
+from core.embedding import EmbedStats, Quantize, SlotRule, embed_parts
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, FORMATS, Limits, MeshDocument, MeshPart, read_mesh, weld
 from core.geosync import CARRIER_SHARE, Placement, detect_placements, embed_placement
@@ -39,7 +39,7 @@ from core.mesh import Adjacency, adjacency, bbox_diagonal
 from core.options import DEFAULT_METHOD, METHODS, Options
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
 from core.resample import undo_subdivision
-from core.slots import bucketed_slots, own_copy
+from core.slots import assign_slots, bucketed_slots, own_copy, ranked_by_default
 from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, Labels
 from core.tolerances import TOL, Tolerances
 from core.unsmooth import MIN_SCORE, choose_iterations, unsmooth
@@ -433,8 +433,13 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
     # the file then does not read, the budget is tried again without the geometric layer before
     # it is given up (the gear with ellipsoids: 7e-4 of the diagonal otherwise)
     layered = (True, False) if any(p is not None for p in placements) else (True,)
-    tries = [(b, f, d, g) for b in budgets for g in (layered if b is not None else (True,))
-             for f in ((1.0,) if b is not None else CAP_FACTORS) for d in decs]
+    tries: list[tuple[float | None, float, int | None, bool, SlotRule | None]] = [
+        (b, f, d, g, None) for b in budgets for g in (layered if b is not None else (True,))
+        for f in ((1.0,) if b is not None else CAP_FACTORS) for d in decs]
+    # last, the other slot assignment, which the detector reads too (core/README.md, capacity): on
+    # meshes of >= 2000 vertices the selection can swap two carriers with every round of moves, and
+    # with ranked slots every carrier ranked after them then holds another bit
+    tries.append((None, CAP_FACTORS[-1], decs[0], True, _other_slots))
     report(Milestones.PREPARED)
     # attempt k (a retry is for coarse meshes and rounding) moves progress over the k-th half of
     # what is left between MOVED and VERIFIED: the first attempt gets half, and it never goes back
@@ -445,13 +450,13 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
 
     refusal: tuple[str, int] | None = None
     too_few = False  # too few carriers for the codeword: no embedding was tried, nothing else is
-    for attempt, (budget, factor, dec, with_geo) in enumerate(tries):
+    for attempt, (budget, factor, dec, with_geo, rule) in enumerate(tries):
         tol = _capped(factor)
         aim = None if budget is None else BUDGET_AIM * budget
         for _ in range(BUDGET_RETRIES + 1):
             vs, stats, final = embed_parts(meshes, key, codeword, method, s, tol=tol, prepared=prepared,
                                            quantize=_part_quantizer(doc, parts, dec), rms_budget=aim,
-                                           diagonal=diagonal,
+                                           diagonal=diagonal, slot_rule=rule,
                                            placements=placements if with_geo else [None] * len(meshes))
             new = _with_parts(doc, parts, vs)
             if budget is None or aim is None:
@@ -512,6 +517,12 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
                       cap_factor=factor, parts=_part_info(doc, parts, stats), layers=layers,
                       geometric_carriers=sum(len(g.carriers) for g in geo))
     return new, rep, dec
+
+
+def _other_slots(slot_hashes: list[np.ndarray], length: int) -> list[np.ndarray]:
+    """The slot assignment the embedder does not choose by default (hashed where it ranks, ranked
+    where it hashes); the detector reads both (:data:`core.detection.VARIANTS`)."""
+    return assign_slots(slot_hashes, length, not ranked_by_default(sum(len(h) for h in slot_hashes), length))
 
 
 def _capped(factor: float) -> Tolerances:
