@@ -5,11 +5,12 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 
-from core import gf2
-from core.analysis import Analysis, analyse_geometric, analyse_methods, prepare, priorities
+from core import capacity_model, gf2
+from core.analysis import TIE_BREAK_FROM, Analysis, analyse_geometric, analyse_methods, prepare, priorities
 from core.coding import (
     COMPACT_BELOW,
     COMPACT_BITS,
@@ -31,7 +32,7 @@ from core.detection import (
     detect_analyses,
     detect_views,
 )
-from core.embedding import EmbedStats, Quantize, embed_parts
+from core.embedding import EmbedStats, Quantize, SlotRule, embed_parts
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, FORMATS, Limits, MeshDocument, MeshPart, read_mesh, weld
 from core.geosync import (
@@ -48,7 +49,7 @@ from core.mesh import Adjacency, adjacency, bbox_diagonal
 from core.options import DEFAULT_METHOD, METHODS, Options
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
 from core.resample import undo_subdivision
-from core.slots import bucketed_slots, own_copy
+from core.slots import assign_slots, bucketed_slots, own_copy, ranked_by_default
 from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, Labels, vertex_labels
 from core.tolerances import TOL, Tolerances
 from core.unsmooth import MIN_SCORE, choose_iterations, unsmooth
@@ -421,8 +422,12 @@ def embed_file(data: bytes, key: str | bytes, *, filename: str | None = None, pa
 
 
 def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: bool = True,
-               compact_rounds: int | None = None) -> tuple[list[np.ndarray], EmbedReport, int | None]:
-    """Embed into every usable part; ``probe``: a refusal says what would fit instead.
+               compact_rounds: int | None = None, reslotted: list[bool] | None = None, reslot: bool = True
+               ) -> tuple[list[np.ndarray], EmbedReport, int | None]:
+    """Embed into every usable part; ``probe``: a refusal says what would fit instead;
+    ``reslot``: when every try fails, try slots other than the embedder's own (ranked again for the
+    selection its moves made, then the other assignment); ``reslotted``: True is appended when the
+    embedding read back only that way.
 
     The standard frame first; a payload of at most :data:`~core.coding.COMPACT_MAX_PAYLOAD` bits
     that it cannot carry on a mesh of few carriers gets the compact frame (:func:`_embed_compact`)."""
@@ -444,8 +449,18 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
     # the file then does not read, the budget is tried again without the geometric layer before
     # it is given up (the gear with ellipsoids: 7e-4 of the diagonal otherwise)
     layered = (True, False) if any(p is not None for p in placements) else (True,)
-    tries = [(b, f, d, g) for b in budgets for g in (layered if b is not None else (True,))
-             for f in ((1.0,) if b is not None else CAP_FACTORS) for d in decs]
+    tries: list[tuple[float | None, float, int | None, bool, SlotRule | None]] = [
+        (b, f, d, g, None) for b in budgets for g in (layered if b is not None else (True,))
+        for f in ((1.0,) if b is not None else CAP_FACTORS) for d in decs]
+    # on a mesh of >= TIE_BREAK_FROM vertices the moves can make the selection swap a few carriers
+    # with every round, and with ranked slots a label that comes or goes moves every carrier ranked
+    # after it to another bit (core/README.md, capacity): the embedding is made again with the slots
+    # ranked as in the selection the last one ended with (the detector's own reading), then with the
+    # other slot assignment, which the detector reads too
+    if reslot and len(meshes) == 1 and len(meshes[0][0]) >= TIE_BREAK_FROM and not prepared[0][1].regular:
+        tries += [(None, CAP_FACTORS[-1], decs[0], True, _AS_FINAL)] * RANK_RETRIES
+    if reslot:
+        tries.append((None, CAP_FACTORS[-1], decs[0], True, _other_slots))
     report(Milestones.PREPARED)
     # attempt k (a retry is for coarse meshes and rounding) moves progress over the k-th half of
     # what is left between MOVED and VERIFIED: the first attempt gets half, and it never goes back
@@ -456,13 +471,23 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
 
     refusal: tuple[str, int] | None = None
     too_few = False  # too few carriers for the codeword: no embedding was tried, nothing else is
-    for attempt, (budget, factor, dec, with_geo) in enumerate(tries):
+    tables: list[np.ndarray] = []  # the rankings _AS_FINAL tried
+    final: list[Analysis] = []
+    for attempt, (budget, factor, dec, with_geo, how) in enumerate(tries):
+        rule = how
+        if how is _AS_FINAL:
+            table = np.unique(np.concatenate([a.slot_hash for a in final]))
+            if any(np.array_equal(table, t) for t in tables) or \
+                    not ranked_by_default(sum(len(a.carriers) for a in final), L):
+                continue  # a ranking tried already, or slots hashed
+            tables.append(table)
+            rule = _ranked_as(table)
         tol = _capped(factor)
         aim = None if budget is None else BUDGET_AIM * budget
         for _ in range(BUDGET_RETRIES + 1):
             vs, stats, final = embed_parts(meshes, key, codeword, method, s, tol=tol, prepared=prepared,
                                            quantize=_part_quantizer(doc, parts, dec), rms_budget=aim,
-                                           diagonal=diagonal, selections=selections,
+                                           diagonal=diagonal, slot_rule=rule, selections=selections,
                                            placements=placements if with_geo else [None] * len(meshes))
             new = _with_parts(doc, parts, vs)
             if budget is None or aim is None:
@@ -484,6 +509,8 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
             break
         verify = _scaled(report, attempt_start(attempt), attempt_start(attempt + 1))
         if _verified(final, key, method, bits, L, verify):
+            if how is not None and reslotted is not None:
+                reslotted.append(True)
             break
         if attempt == len(tries) - 1:
             refusal = ("the watermark could not be made readable on this mesh within the displacement "
@@ -523,6 +550,26 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
                       cap_factor=factor, parts=_part_info(doc, parts, stats), layers=layers,
                       geometric_carriers=sum(len(g.carriers) for g in geo))
     return new, rep, dec
+
+
+#: re-embeddings with the slots ranked as in the selection the last embedding ended with
+RANK_RETRIES = 3
+#: marks those tries in _embed_doc (their slot rule is made from the embedding before)
+_AS_FINAL: SlotRule = lambda slot_hashes, length: []  # noqa: E731
+
+
+def _ranked_as(table: np.ndarray) -> SlotRule:
+    """Ranked slots of one mesh as the detector deals them for a selection whose distinct hashes are
+    ``table`` (sorted): a carrier's slot is its hash's rank in it, whatever the selection of the
+    round being embedded (a hash not in it takes the rank of the next one)."""
+    return lambda slot_hashes, length: [np.searchsorted(table, h).astype(np.int64) % length
+                                        for h in slot_hashes]
+
+
+def _other_slots(slot_hashes: list[np.ndarray], length: int) -> list[np.ndarray]:
+    """The slot assignment the embedder does not choose by default (hashed where it ranks, ranked
+    where it hashes); the detector reads both (:data:`core.detection.VARIANTS`)."""
+    return assign_slots(slot_hashes, length, not ranked_by_default(sum(len(h) for h in slot_hashes), length))
 
 
 def _capped(factor: float) -> Tolerances:
@@ -585,10 +632,14 @@ def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str |
 
 
 def _placements(meshes: list[tuple[np.ndarray, np.ndarray]], adjs: Sequence[Adjacency], key: str | bytes,
-                L: int, frames: Sequence[SurfaceFrame | None]) -> list[Placement | None]:
+                L: int, frames: Sequence[SurfaceFrame | None] | None = None) -> list[Placement | None]:
     """Where each mesh's geometric carriers are (``frames``: each mesh's
-    :func:`~core.geosync.surface_frame`), or None for a mesh without them (no frame, too few
-    carriers, or too few in the whole file for a codeword of ``L`` bits)."""
+    :func:`~core.geosync.surface_frame`, when the caller made them), or None for a mesh without
+    them (no frame, too few carriers, or too few in the whole file for a codeword of ``L`` bits)."""
+    if sum(len(v) for v, _ in meshes) < GEOMETRIC_MIN_VERTICES:
+        return [None] * len(meshes)
+    if frames is None:
+        frames = [surface_frame(v, f) for v, f in meshes]
     out: list[Placement | None] = []
     total = 0
     for (v, _), adj, frame in zip(meshes, adjs, frames, strict=True):
@@ -734,9 +785,11 @@ def _what_fits(doc: MeshDocument, options: Options) -> str:
     return "; no shorter payload, other method or lower strength reads back either: use a finer mesh"
 
 
-def _embeds(doc: MeshDocument, options: Options, compact_rounds: int | None = None) -> bool:
+def _embeds(doc: MeshDocument, options: Options, compact_rounds: int | None = None,
+            reslotted: list[bool] | None = None, reslot: bool = True) -> bool:
     try:
-        _embed_doc(doc, options, _no_progress, probe=False, compact_rounds=compact_rounds)
+        _embed_doc(doc, options, _no_progress, probe=False, compact_rounds=compact_rounds,
+                   reslotted=reslotted, reslot=reslot)
     except CapacityError:
         return False
     return True
@@ -915,7 +968,15 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
     if carriers < COMPACT_BELOW:
         max_bits = max(max_bits, COMPACT_MAX_PAYLOAD)  # the compact frame's, when it embeds
     if carriers < CAPACITY_SURE * codeword_length(max_bits or None):
-        max_bits = _verified_payload(doc, replace(options, key=key), max_bits)
+        held: Callable[[bool], int] | None = None
+        # the model needs carriers that stay where they are: no geometric layer (at the shortest
+        # codeword, which gets it first), no regular labels
+        layer = _placements(meshes, [adj for adj, _ in prepared], key, codeword_length(1))
+        if all(p is None for p in layer) and not any(lab.regular for _, lab in prepared):
+            r = _reach(meshes, prepared, key, method, s, diagonal, _part_quantizer(doc, parts, doc.decimals))
+            held = partial(_held_payload, r, max_bits)
+        max_bits = _verified_payload(doc, replace(options, key=key), max_bits, held,
+                                     compact=carriers < COMPACT_BELOW)
     report(Milestones.VERIFIED)
     by_copies = {str(c): _largest_payload(carriers / c) for c in (1, 2, 4, 8, 16)}
     _, rms, mx, _ = _distortion(doc, new, {}, hausdorff=False)
@@ -942,16 +1003,76 @@ CAPACITY_SURE = 8
 CAPACITY_COMPACT_ROUNDS = 16
 
 
-def _verified_payload(doc: MeshDocument, options: Options, bound: int) -> int:
+def _reach(meshes: list[tuple[np.ndarray, np.ndarray]], prepared: list[tuple[Adjacency, Labels]],
+           key: str | bytes, method: str, s: float, diagonal: float,
+           quantize: Quantize) -> capacity_model.Reach:
+    """What every carrier reads when asked for 0 and for 1 (:class:`core.capacity_model.Reach`): two
+    probe embeddings at the embedder's last try (widest cap, no RMS budget)."""
+    asked = []
+    for value in (0, 1):
+        _, _, an = embed_parts(meshes, key, np.full(1, value, np.uint8), method, s,
+                               tol=_capped(CAP_FACTORS[-1]), prepared=prepared, quantize=quantize,
+                               diagonal=diagonal, placements=[None] * len(meshes))
+        asked.append(an)
+    return capacity_model.reach(*asked)
+
+
+def _held_payload(r: capacity_model.Reach, bound: int, ranked: bool = True) -> int:
+    """The longest payload, at most ``bound`` bits, such that the carriers hold the codeword of every
+    payload length up to it whatever the payload (:func:`core.capacity_model.holds`, each codeword
+    length, shortest first, until one fails); ``ranked=False``: with hashed slots only."""
+    held, last = 0, 0
+    for n in range(1, bound + 1):
+        if codeword_length(n) != last:
+            last = codeword_length(n)
+            if not capacity_model.holds(r, last, ranked=ranked):
+                break
+        held = n
+    return held
+
+
+def _verified_payload(doc: MeshDocument, options: Options, bound: int,
+                      held: Callable[[bool], int] | None = None, compact: bool = False) -> int:
     """The longest payload, at most ``bound`` bits, that really embeds and reads back with
-    ``options`` (key, method, strength): the bound itself or the next rung of the ladder below it
-    that embeds :data:`CAPACITY_TRIALS` random payloads (0 if none does)."""
+    ``options`` (key, method, strength): the first of the candidates that embeds
+    :data:`CAPACITY_TRIALS` random payloads (0 if none does).  Candidates: ``bound`` and the rungs
+    of the ladder below it; with ``held`` (:func:`_held_payload`: every length up to it holds
+    whatever the payload), the rungs above it that only the compact frame carries (``compact``: a
+    mesh of few carriers, up to :data:`~core.coding.COMPACT_MAX_PAYLOAD` bits), then ``held`` and
+    the rungs below it.  When a trial reads back only with slots other than the embedder's (the
+    selection moved under a payload's moves, :func:`_embed_doc`), ranked slots are not trusted for
+    this key: ``held`` is what the hashed slots hold, and the walk goes on from there.  Without
+    ``held`` (a file the model does not cover) the trials do not use those other slots: eight
+    trials passing through them are no evidence that every payload does (the gear: 72 bits offered
+    that way, 1 of 6 payloads refused), and capacity offers what it offered before them."""
     rng = np.random.default_rng(bound)
-    for n in [bound] + [n for n in CAPACITY_LADDER if n < bound]:
+    top = held(True) if held is not None else None
+    trusted = True
+
+    def ladder(top: int | None) -> list[int]:
+        if top is None:
+            return [bound] + [n for n in CAPACITY_LADDER if n < bound]
+        high = min(bound, COMPACT_MAX_PAYLOAD) if compact else 0
+        return [n for n in CAPACITY_LADDER if top < n <= high] + [top] + \
+            [n for n in CAPACITY_LADDER if n < top]
+
+    todo = ladder(top)
+    while todo:
+        n = todo.pop(0)
         if n <= 0:
             break
         payloads = ["".join(map(str, rng.integers(0, 2, n))) for _ in range(CAPACITY_TRIALS)]
-        if all(_embeds(doc, replace(options, payload=p), CAPACITY_COMPACT_ROUNDS) for p in payloads):
+        reslotted: list[bool] = []
+        ok = all(_embeds(doc, replace(options, payload=p), CAPACITY_COMPACT_ROUNDS, reslotted,
+                         reslot=held is not None) for p in payloads)
+        if reslotted and trusted and held is not None:
+            trusted = False
+            hashed = held(False)
+            if top is not None and hashed < top:
+                top = hashed
+                todo = [m for m in ladder(top) if m <= n]
+                continue
+        if ok:
             return n
     return 0
 
