@@ -176,16 +176,12 @@ def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, m
                               labels.regular, False, tol)
 
 
-def ring_boundaries(v: np.ndarray, adj: Adjacency, sel: np.ndarray, rings: Rings | None = None
+def ring_boundaries(v: np.ndarray, adj: Adjacency, sel: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """First and second moments of the 1-rings of the vertices ``sel``: the ring means ``mu``,
-    principal axes, moments ``lam`` (clipped at 0) and scale ``sqrt(sum lam)`` (``rings``: the
-    mesh's kept ring moments, when the caller has them)."""
-    if rings is None:
-        mu, sigma = neighbour_moments(v, adj, sel)
-        lam, axes = eigh3(sigma)
-    else:
-        mu, lam, axes = rings.moments(sel)
+    principal axes, moments ``lam`` (clipped at 0) and scale ``sqrt(sum lam)``."""
+    mu, sigma = neighbour_moments(v, adj, sel)
+    lam, axes = eigh3(sigma)
     lam = np.maximum(lam, 0.0)
     return mu, axes, lam, np.sqrt(lam.sum(axis=1))
 
@@ -198,14 +194,13 @@ def method_moments(method: str, lam: np.ndarray, scale: np.ndarray, tol: Toleran
 
 def carrier_statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray,
                        slot_hash: np.ndarray | Callable[[np.ndarray], np.ndarray], methods: Sequence[str],
-                       regular: bool, geometric: bool, tol: Tolerances = TOL,
-                       rings: Rings | None = None) -> dict[str, Analysis]:
+                       regular: bool, geometric: bool, tol: Tolerances = TOL) -> dict[str, Analysis]:
     """Boundaries and statistics of the chosen vertices ``sel``, one :class:`Analysis` per method.
 
     Vertices whose neighbourhood is a line or far coarser than the others' (``tol.min_flatness``,
     ``tol.max_scale``) are dropped.  ``slot_hash``: one per vertex of ``sel``, or a function of the
     kept vertices."""
-    mu, axes, lam, scale = ring_boundaries(v, adj, sel, rings)
+    mu, axes, lam, scale = ring_boundaries(v, adj, sel)
     ok = (scale > 0) & (lam[:, 1] > tol.min_flatness * np.maximum(lam[:, 2], 1e-300))
     if ok.any():
         ok &= scale <= tol.max_scale * np.median(scale[ok])
@@ -225,12 +220,12 @@ def analyse_geometric(vertices: np.ndarray, adj: Adjacency, key: str | bytes, me
                       rings: Rings | None = None) -> dict[str, Analysis]:
     """The geometric carriers of a mesh (:func:`core.geosync.geometric_carriers` at ``placement``,
     or ``chosen`` when the caller has them) and their statistics, one :class:`Analysis` per method
-    (``geometric=True``); ``rings``: the mesh's kept ring moments, when the caller has them."""
+    (``geometric=True``); ``rings``: the mesh's kept ring axes, when the caller has them."""
     v = np.asarray(vertices, np.float64)
     if chosen is None:
         chosen = geometric_carriers(v, adj, placement.frame, placement.axes, placement.rung, key, rings)
     sel, cell_hash = chosen
-    return carrier_statistics(v, adj, sel, cell_hash, methods, False, True, tol, rings)
+    return carrier_statistics(v, adj, sel, cell_hash, methods, False, True, tol)
 
 
 def analyse(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, method: str,
