@@ -5,9 +5,9 @@ threshold (at most 32 MiB) with fresh ``mmap`` calls and unmaps them on ``free``
 array faults its pages in again from the kernel, which also zeroes them: on a large mesh that
 system time rivals the computation itself.  With mmap turned off, freed memory goes back to the
 heap and is reused by the next array, so a second call faults almost nothing (the figures are in
-``core/README.md`` and ``bench/results/speed.md``).  Every thread allocates from that one heap.
-The cost: a process keeps up to ``keep_mb`` of freed heap; service workers are capped
-(``RLIMIT_AS``) and recycled, so that memory stays bounded.
+``core/README.md`` and ``bench/results/speed.md``).  The cost: a process keeps up to ``keep_mb``
+of freed heap; service workers are capped (``RLIMIT_AS``) and recycled, so that memory stays
+bounded.
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ import ctypes
 
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_MAX = -4
-_M_ARENA_MAX = -8
 
 #: freed heap kept by a process before it is trimmed back to the kernel
 KEEP_MB = 1024
@@ -33,8 +32,4 @@ def tune_malloc(keep_mb: int = KEEP_MB) -> bool:
         return False
     ok = mallopt(_M_MMAP_MAX, 0) == 1
     ok &= mallopt(_M_TRIM_THRESHOLD, int(keep_mb) * 1024 * 1024) == 1
-    # one arena for every thread: the engine's second thread (the geometric layer's frame beside the
-    # labels) would otherwise get an arena of its own, 64 MiB of address space reserved at once,
-    # which a worker's RLIMIT_AS counts, and whose freed memory the next call could not reuse
-    ok &= mallopt(_M_ARENA_MAX, 1) == 1
     return bool(ok)

@@ -616,19 +616,34 @@ def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str |
     this one makes the labels and the selection (numpy and scipy release the GIL in the large
     array operations of both; the figures are in ``core/README.md``, speed)."""
     vs = [np.asarray(v, np.float64) for v, _ in meshes]
-    if sum(len(v) for v in vs) < GEOMETRIC_MIN_VERTICES:
+    total = sum(len(v) for v in vs)
+    if total < GEOMETRIC_MIN_VERTICES:
         return prepare(vs, [f for _, f in meshes]), [None] * len(meshes), None
+
+    def selections(prepared: list[tuple[Adjacency, Labels]]) -> list[tuple[np.ndarray, Analysis]]:
+        out = []
+        for v, (_, f), (adj, lab) in zip(vs, meshes, prepared, strict=True):
+            prio = priorities(v, adj, lab, key)
+            out.append((prio, analyse_methods(v, f, key, [method], adj, lab, TOL, prio)[method]))
+        return out
+
+    if total < PARALLEL_FROM:
+        prepared = prepare(vs, [f for _, f in meshes])
+        return prepared, _placements(meshes, [adj for adj, _ in prepared], key, L), selections(prepared)
     with ThreadPoolExecutor(1) as pool:
         frames = pool.submit(lambda: [surface_frame(v, f) for v, f in meshes])
         adjs = [adjacency(f, len(v)) for v, (_, f) in zip(vs, meshes, strict=True)]
         # queued behind the frames on the one worker: it runs while the labels are made here
         placed = pool.submit(lambda: _placements(meshes, adjs, key, L, frames.result()))
         prepared = [(adj, vertex_labels(v, adj)) for v, adj in zip(vs, adjs, strict=True)]
-        selections = []
-        for v, (_, f), (adj, lab) in zip(vs, meshes, prepared, strict=True):
-            prio = priorities(v, adj, lab, key)
-            selections.append((prio, analyse_methods(v, f, key, [method], adj, lab, TOL, prio)[method]))
-        return prepared, placed.result(), selections
+        return prepared, placed.result(), selections(prepared)
+
+
+#: files of fewer vertices are prepared in one thread (:func:`_prepared_placements`): their frame
+#: costs about 20 ms, and a second thread's stack (8 MiB of address space) is room a service
+#: worker's RLIMIT_AS would give up for nothing (tests/app give a 10k-vertex embed 48 MB above an
+#: idle worker)
+PARALLEL_FROM = 50_000
 
 
 def _placements(meshes: list[tuple[np.ndarray, np.ndarray]], adjs: Sequence[Adjacency], key: str | bytes,
