@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from functools import partial
 
@@ -50,7 +49,7 @@ from core.options import DEFAULT_METHOD, METHODS, Options
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
 from core.resample import undo_subdivision
 from core.slots import assign_slots, bucketed_slots, own_copy, ranked_by_default
-from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, Labels, vertex_labels
+from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, Labels
 from core.tolerances import TOL, Tolerances
 from core.unsmooth import MIN_SCORE, choose_iterations, unsmooth
 
@@ -610,40 +609,20 @@ def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str |
                                     list[tuple[np.ndarray, Analysis]] | None]:
     """:func:`~core.analysis.prepare` of every mesh, where its geometric carriers are
     (:func:`_placements`) and, for a file that may have them, its connectivity layer's selection
-    (priorities and analysis with ``method``, as :func:`~core.embedding.embed_parts` takes them).
-    The geometric layer needs no labels and its frame no adjacency: a second thread makes the
-    surfaces' frames while this one makes the adjacency, then chooses the geometric carriers while
-    this one makes the labels and the selection (numpy and scipy release the GIL in the large
-    array operations of both; the figures are in ``core/README.md``, speed)."""
+    (priorities and analysis with ``method``, as :func:`~core.embedding.embed_parts` takes them,
+    so that the embedder does not make them again).  All in this thread: a second thread for the
+    frames saved 0.5 s of the 1M-vertex embedding, but either gave it a malloc arena of its own
+    (peak 1,288 MiB against 1,016, `bench speed`) or, with one arena for all threads, made
+    tests/app's workers capped at 310 MiB of address space run out on a 10k-vertex embed."""
     vs = [np.asarray(v, np.float64) for v, _ in meshes]
-    total = sum(len(v) for v in vs)
-    if total < GEOMETRIC_MIN_VERTICES:
-        return prepare(vs, [f for _, f in meshes]), [None] * len(meshes), None
-
-    def selections(prepared: list[tuple[Adjacency, Labels]]) -> list[tuple[np.ndarray, Analysis]]:
-        out = []
-        for v, (_, f), (adj, lab) in zip(vs, meshes, prepared, strict=True):
-            prio = priorities(v, adj, lab, key)
-            out.append((prio, analyse_methods(v, f, key, [method], adj, lab, TOL, prio)[method]))
-        return out
-
-    if total < PARALLEL_FROM:
-        prepared = prepare(vs, [f for _, f in meshes])
-        return prepared, _placements(meshes, [adj for adj, _ in prepared], key, L), selections(prepared)
-    with ThreadPoolExecutor(1) as pool:
-        frames = pool.submit(lambda: [surface_frame(v, f) for v, f in meshes])
-        adjs = [adjacency(f, len(v)) for v, (_, f) in zip(vs, meshes, strict=True)]
-        # queued behind the frames on the one worker: it runs while the labels are made here
-        placed = pool.submit(lambda: _placements(meshes, adjs, key, L, frames.result()))
-        prepared = [(adj, vertex_labels(v, adj)) for v, adj in zip(vs, adjs, strict=True)]
-        return prepared, placed.result(), selections(prepared)
-
-
-#: files of fewer vertices are prepared in one thread (:func:`_prepared_placements`): their frame
-#: costs about 20 ms, and a second thread's stack (8 MiB of address space) is room a service
-#: worker's RLIMIT_AS would give up for nothing (tests/app give a 10k-vertex embed 48 MB above an
-#: idle worker)
-PARALLEL_FROM = 50_000
+    prepared = prepare(vs, [f for _, f in meshes])
+    if sum(len(v) for v in vs) < GEOMETRIC_MIN_VERTICES:
+        return prepared, [None] * len(meshes), None
+    selections = []
+    for v, (_, f), (adj, lab) in zip(vs, meshes, prepared, strict=True):
+        prio = priorities(v, adj, lab, key)
+        selections.append((prio, analyse_methods(v, f, key, [method], adj, lab, TOL, prio)[method]))
+    return prepared, _placements(meshes, [adj for adj, _ in prepared], key, L), selections
 
 
 def _placements(meshes: list[tuple[np.ndarray, np.ndarray]], adjs: Sequence[Adjacency], key: str | bytes,
