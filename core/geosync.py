@@ -501,12 +501,7 @@ class Placement:
 def embed_placement(vertices: np.ndarray, faces: np.ndarray, adj: Adjacency,
                     key: str | bytes) -> Placement | None:
     """The embedder's placement of a mesh, or ``None`` when its surface has no frame."""
-    return placement_in(surface_frame(vertices, faces), vertices, adj, key)
-
-
-def placement_in(frame: SurfaceFrame | None, vertices: np.ndarray, adj: Adjacency,
-                 key: str | bytes) -> Placement | None:
-    """:func:`embed_placement` of a mesh whose :func:`surface_frame` the caller made."""
+    frame = surface_frame(vertices, faces)
     if frame is None:
         return None
     rung, chosen = choose_rung(vertices, adj, frame, frame.axes, key)

@@ -34,15 +34,7 @@ from core.detection import (
 from core.embedding import EmbedStats, Quantize, SlotRule, embed_parts
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, FORMATS, Limits, MeshDocument, MeshPart, read_mesh, weld
-from core.geosync import (
-    CARRIER_SHARE,
-    Placement,
-    Rings,
-    SurfaceFrame,
-    detect_placements,
-    placement_in,
-    surface_frame,
-)
+from core.geosync import CARRIER_SHARE, Placement, Rings, detect_placements, embed_placement
 from core.hashing import derive
 from core.mesh import Adjacency, adjacency, bbox_diagonal
 from core.options import DEFAULT_METHOD, METHODS, Options
@@ -606,18 +598,12 @@ GEOMETRIC_MIN_VERTICES = int(np.ceil(8 * codeword_length(1) / CARRIER_SHARE))
 
 def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str | bytes, L: int, method: str
                          ) -> tuple[list[tuple[Adjacency, Labels]], list[Placement | None],
-                                    list[tuple[np.ndarray, Analysis]] | None]:
+                                    list[tuple[np.ndarray, Analysis]]]:
     """:func:`~core.analysis.prepare` of every mesh, where its geometric carriers are
-    (:func:`_placements`) and, for a file that may have them, its connectivity layer's selection
-    (priorities and analysis with ``method``, as :func:`~core.embedding.embed_parts` takes them,
-    so that the embedder does not make them again).  All in this thread: a second thread for the
-    frames saved 0.5 s of the 1M-vertex embedding, but either gave it a malloc arena of its own
-    (peak 1,288 MiB against 1,016, `bench speed`) or, with one arena for all threads, made
-    tests/app's workers capped at 310 MiB of address space run out on a 10k-vertex embed."""
+    (:func:`_placements`), and its connectivity layer's selection (priorities and analysis with
+    ``method``, as :func:`~core.embedding.embed_parts` takes them: made once for every try)."""
     vs = [np.asarray(v, np.float64) for v, _ in meshes]
     prepared = prepare(vs, [f for _, f in meshes])
-    if sum(len(v) for v in vs) < GEOMETRIC_MIN_VERTICES:
-        return prepared, [None] * len(meshes), None
     selections = []
     for v, (_, f), (adj, lab) in zip(vs, meshes, prepared, strict=True):
         prio = priorities(v, adj, lab, key)
@@ -626,18 +612,15 @@ def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str |
 
 
 def _placements(meshes: list[tuple[np.ndarray, np.ndarray]], adjs: Sequence[Adjacency], key: str | bytes,
-                L: int, frames: Sequence[SurfaceFrame | None] | None = None) -> list[Placement | None]:
-    """Where each mesh's geometric carriers are (``frames``: each mesh's
-    :func:`~core.geosync.surface_frame`, when the caller made them), or None for a mesh without
-    them (no frame, too few carriers, or too few in the whole file for a codeword of ``L`` bits)."""
+                L: int) -> list[Placement | None]:
+    """Where each mesh's geometric carriers are, or None for a mesh without them (no frame, too
+    few carriers, or too few in the whole file for a codeword of ``L`` bits)."""
     if sum(len(v) for v, _ in meshes) < GEOMETRIC_MIN_VERTICES:
         return [None] * len(meshes)
-    if frames is None:
-        frames = [surface_frame(v, f) for v, f in meshes]
     out: list[Placement | None] = []
     total = 0
-    for (v, _), adj, frame in zip(meshes, adjs, frames, strict=True):
-        p = placement_in(frame, v, adj, key)
+    for (v, f), adj in zip(meshes, adjs, strict=True):
+        p = embed_placement(v, f, adj, key)
         count = 0 if p is None else p.count
         out.append(p if count >= GEOMETRIC_PART_MIN else None)
         total += count if count >= GEOMETRIC_PART_MIN else 0
