@@ -26,7 +26,7 @@ import numpy as np
 from core.eig3 import eigh3
 from core.geosync import Placement, Rings, geometric_carriers
 from core.hashing import derive, mix64
-from core.mesh import Adjacency, adjacency, neighbour_moments
+from core.mesh import Adjacency, adjacency, neighbour_moments, oriented
 from core.options import METHODS
 from core.sync import Labels, select_carriers, tie_broken, vertex_labels
 from core.tolerances import TOL, Tolerances
@@ -60,6 +60,8 @@ class Analysis:
     muted : (k,) bool ndarray, optional
         Carriers that keep their slots but do not vote (a connectivity carrier that is also a
         geometric carrier of the same view, read as the latter).
+    signed : (k,) float64 ndarray, optional
+        :func:`signed_statistic` of every carrier (what the detector's signed variant reads).
     """
 
     carriers: np.ndarray
@@ -72,6 +74,7 @@ class Analysis:
     regular: bool
     geometric: bool = False
     muted: np.ndarray | None = None
+    signed: np.ndarray | None = None
 
     def copy(self) -> Analysis:
         """A copy whose arrays the embedder may change in place."""
@@ -81,7 +84,8 @@ class Analysis:
         """The carriers selected by ``which`` (a boolean mask or indices)."""
         return Analysis(self.carriers[which], self.slot_hash[which], self.z[which], self.mu[which],
                         self.axes[which], self.lam[which], self.scale[which], self.regular, self.geometric,
-                        None if self.muted is None else self.muted[which])
+                        None if self.muted is None else self.muted[which],
+                        None if self.signed is None else self.signed[which])
 
 
 #: vertices from which equal priorities are told apart by geometry: on smaller meshes a carrier's
@@ -114,11 +118,42 @@ def statistic(method: str, v: np.ndarray, mu: np.ndarray, axes: np.ndarray, lam:
     (k,) float64 ndarray
         ``z``: > 0 outside the boundary (bit 0), < 0 inside (bit 1).
     """
+    return _statistic(method, v, mu, axes, lam, scale, tol, None)
+
+
+#: what :func:`keyed_sides` mixes into a slot hash before taking its top bit
+_SIDE_SALT = np.uint64(0x5D1E5D1E5D1E5D1E)
+
+
+def keyed_sides(slot_hash: np.ndarray) -> np.ndarray:
+    """The side (+1: the one the faces call outside, -1: inside; :func:`core.mesh.oriented`) on which
+    the embedder puts each carrier that it moves outside its boundary: one keyed bit of the carrier's
+    slot hash, so that half the marks go out and half in (all outwards would inflate the surface, and
+    move the frame of the geometric layer, by a little every time)."""
+    return np.where(mix64(np.asarray(slot_hash, np.uint64) ^ _SIDE_SALT) >> np.uint64(63), -1.0, 1.0)
+
+
+def signed_statistic(method: str, v: np.ndarray, mu: np.ndarray, axes: np.ndarray, lam: np.ndarray,
+                     scale: np.ndarray, sides: np.ndarray, tol: Tolerances = TOL) -> np.ndarray:
+    """:func:`statistic` with the offset along the oriented axis ``e1`` (:func:`core.mesh.oriented`)
+    kept signed, towards the carrier's keyed side ``sides`` (:func:`keyed_sides`): equal to it on
+    that side, and on the other the boundary's mirror image (planes ``(y0 - tau) / s``; ellipsoids
+    the radius with the sign of ``y0``).  The embedder puts the carriers it moves outside on their
+    keyed side, so attacks that add zero-mean errors (noise, quantisation) move this statistic
+    linearly where ``|y0|`` moves by their square: what the detector's
+    :data:`~core.detection.SIGNED` variant reads."""
+    return _statistic(method, v, mu, axes, lam, scale, tol, sides)
+
+
+def _statistic(method: str, v: np.ndarray, mu: np.ndarray, axes: np.ndarray, lam: np.ndarray,
+               scale: np.ndarray, tol: Tolerances, sides: np.ndarray | None) -> np.ndarray:
     y = np.einsum("kij,ki->kj", axes, v - mu)  # coordinates in the eigenbasis
     if method == "planes":
         tau = np.maximum(np.sqrt(np.maximum(lam[:, 0], 0.0)), tol.plane_floor * scale)
-        return (np.abs(y[:, 0]) - tau) / scale
+        return ((np.abs(y[:, 0]) if sides is None else sides * y[:, 0]) - tau) / scale
     rho = np.sqrt((y * y / lam).sum(axis=1))
+    if sides is not None:
+        rho = np.where(sides * y[:, 0] < 0, -rho, rho)
     return (rho - tol.radius) * np.sqrt(lam[:, 0]) / scale
 
 
@@ -179,11 +214,12 @@ def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, m
 def ring_boundaries(v: np.ndarray, adj: Adjacency, sel: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """First and second moments of the 1-rings of the vertices ``sel``: the ring means ``mu``,
-    principal axes, moments ``lam`` (clipped at 0) and scale ``sqrt(sum lam)``."""
+    principal axes (the least-variance one :func:`~core.mesh.oriented`), moments ``lam`` (clipped at
+    0) and scale ``sqrt(sum lam)``."""
     mu, sigma = neighbour_moments(v, adj, sel)
     lam, axes = eigh3(sigma)
     lam = np.maximum(lam, 0.0)
-    return mu, axes, lam, np.sqrt(lam.sum(axis=1))
+    return mu, oriented(v, adj, sel, mu, axes), lam, np.sqrt(lam.sum(axis=1))
 
 
 def method_moments(method: str, lam: np.ndarray, scale: np.ndarray, tol: Tolerances = TOL) -> np.ndarray:
@@ -210,7 +246,11 @@ def carrier_statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray,
     for method in methods:
         lam_m = method_moments(method, lam, scale, tol)
         z = statistic(method, v[sel], mu, axes, lam_m, scale, tol)
-        out[method] = Analysis(sel, hashes, z, mu, axes, lam_m, scale, regular, geometric)
+        # the geometric layer's carriers stay on their sides (crossing, they turn their neighbours'
+        # tangent planes and change which vertex is nearest a cell's centre: more rounds)
+        t = None if geometric else signed_statistic(method, v[sel], mu, axes, lam_m, scale,
+                                                    keyed_sides(hashes), tol)
+        out[method] = Analysis(sel, hashes, z, mu, axes, lam_m, scale, regular, geometric, signed=t)
     return out
 
 

@@ -79,8 +79,9 @@ def adaptive_threshold(z: np.ndarray) -> float:
 
 
 #: how the carriers' statistics become votes: the embedder's boundary with hard votes, the adaptive
-#: threshold with clipped soft votes, and the adaptive threshold weighted by the carrier's scale
-HARD, ADAPTIVE, SCALED = 0, 1, 2
+#: threshold with clipped soft votes, the adaptive threshold weighted by the carrier's scale, and
+#: the same on the signed statistic (:func:`core.analysis.signed_statistic`)
+HARD, ADAPTIVE, SCALED, SIGNED = 0, 1, 2, 3
 #: soft votes are clipped at this many median deviations in the scaled variant
 SCALED_CLIP = 3.0
 
@@ -95,15 +96,17 @@ def _soft_values(analyses: list[Analysis], adaptive: int) -> list[np.ndarray]:
     divided by the largest so that votes stay in [-1, 1]. ``z`` is in units of ``s``, so an attack
     that adds the same absolute error to every vertex (quantisation, noise of a fixed amplitude)
     moves the ``z`` of a carrier with a small ring the most: weighting by ``s`` is the matched
-    filter for it.
+    filter for it. :data:`SIGNED`: :data:`SCALED` on the signed statistic
+    (:func:`core.analysis.signed_statistic`; an analysis without it reads as :data:`SCALED`).
     """
     out = []
     for a in analyses:
-        live = a.z if a.muted is None else a.z[~a.muted]
+        stat = a.signed if adaptive == SIGNED and a.signed is not None else a.z
+        live = stat if a.muted is None else stat[~a.muted]
         if adaptive and len(live):
-            zc = a.z - adaptive_threshold(live)
+            zc = stat - adaptive_threshold(live)
             w = median(np.abs(zc if a.muted is None else zc[~a.muted])) or 1.0
-            if adaptive == SCALED:
+            if adaptive in (SCALED, SIGNED):
                 weight = a.scale / (median(a.scale) or 1.0)
                 x = np.clip(zc / w, -SCALED_CLIP, SCALED_CLIP) * weight
                 x = x / (float(np.abs(x).max()) or 1.0)
@@ -290,7 +293,27 @@ def _compact_confidence(key: str | bytes, slots: np.ndarray, raw: np.ndarray, si
 #: decoding variants (votes, slot assignment): the embedder's own, then the ones that survive
 #: attacks (global shifts of the statistics; crops that change the carrier count; absolute errors
 #: of every vertex, which the scale-weighted votes read; measurements in core/README.md, section 5)
-VARIANTS = ((HARD, None), (ADAPTIVE, None), (ADAPTIVE, True), (ADAPTIVE, False), (SCALED, None))
+VARIANTS = ((HARD, None), (ADAPTIVE, None), (ADAPTIVE, True), (ADAPTIVE, False), (SCALED, None),
+            (SIGNED, None))
+#: the signed variant is tried on views with at least this many carriers (in one method): it is
+#: for noise and quantisation, which fewer carriers do not survive at any payload length, and each
+#: variant tried adds to the false positives
+SIGNED_FROM = COMPACT_BELOW
+
+
+def view_variants(layer: str, per_method: dict[str, list[Analysis]] | None) -> list[tuple[int, bool | None]]:
+    """The decoding variants a view tries.  Only the connectivity view forces a slot assignment
+    (for crops, which change the carrier count and move the surface's frame, so that only it reads
+    them: the view of both layers is for attacks that keep every carrier, the geometric one has
+    hashed slots only); the geometric view has no signed statistic (its carriers stay on their
+    sides), and the signed variant needs :data:`SIGNED_FROM` connectivity carriers (a view made
+    lazily, ``per_method`` None, counts it).  With both methods a file with the geometric layer
+    tries 12 + 8 + 6 candidates per length, as many as before the signed variant (10 + 10 + 6)."""
+    many = layer != GEOMETRY and (per_method is None or any(
+        sum(len(a.carriers) for a in analyses if not a.geometric) >= SIGNED_FROM
+        for analyses in per_method.values()))
+    return [(adaptive, ranked) for adaptive, ranked in VARIANTS
+            if (layer == CONNECTIVITY or ranked is None) and (adaptive != SIGNED or many)]
 
 
 def _same_as_auto(analyses: list[Analysis], L: int, ranked: bool | None) -> bool:
@@ -323,11 +346,10 @@ def view_candidates(layer: str, per_method: dict[str, list[Analysis]] | None, me
     """Candidates a view tries and the chance that any of them passes on random bits: methods x
     decoding variants x (every explicit length's CRC + zero padding, and the key-code test), plus
     the compact frame's lengths when the view's connectivity carriers are fewer than
-    ``COMPACT_BELOW`` (only the connectivity view tries it).  The geometric view has no ranked
-    slots, so only the variants with the automatic assignment are tried there.  ``per_method``:
+    ``COMPACT_BELOW`` (only the connectivity view tries it); the variants are
+    :func:`view_variants`.  ``per_method``:
     the view's analyses, or None for a view made lazily (it then counts as its layer allows)."""
-    variants = sum(1 for _, ranked in VARIANTS if layer != GEOMETRY or ranked is None)
-    n_tries = variants * methods
+    n_tries = len(view_variants(layer, per_method)) * methods
     lengths = [len(expected)] if expected is not None else list(range(1, MAX_PAYLOAD_BITS + 1))
     fp_explicit = sum(2.0 ** -(CRC_BITS + (message_length(n) - n - CRC_BITS)) for n in lengths)
     fp_key = binomial_tail(KEY_CODE_MAX_ERRORS, KEY_CODE_BITS) if expected is None else 0.0
@@ -369,7 +391,7 @@ def detect_views(views: list[View], key: str | bytes, expected: np.ndarray | Non
                     for method, analyses in per_method.items()]
         # variant by variant across the methods: a method that reads the mark the embedder's way
         # answers before any other is decoded the attack-tolerant ways
-        for adaptive, ranked in VARIANTS:
+        for adaptive, ranked in view_variants(layer, per_method):
             # the key-derived code of every method first (one candidate each), then the explicit
             # lengths, then the compact frame
             for frame in ("key", "explicit", "compact"):
@@ -413,7 +435,8 @@ class _MethodDecoder:
         self.geometric = int(sum(len(a.carriers) for a in analyses if a.geometric))
         #: with an expected payload, the closest candidate so far
         self.near: DetectResult | None = None
-        self.values = {mode: _soft_values(analyses, mode) for mode in (HARD, ADAPTIVE, SCALED)}
+        #: each decoding mode's votes, made when a variant first asks (an untouched file reads hard)
+        self.values: dict[int, list[np.ndarray]] = {}
         hashes = np.concatenate([a.slot_hash for a in analyses]) if analyses else np.zeros(0, np.uint64)
         first = np.unique(hashes, return_index=True)[1]
         #: one carrier per label for the agreement test, when labels repeat little enough that a
@@ -421,6 +444,11 @@ class _MethodDecoder:
         #: (r of n carriers kept; a 140-bit codeword), so r >= 0.4 n keeps it above 4.8
         self.reps: np.ndarray | None = first if len(first) >= DISTINCT_FOR_TEST * len(hashes) else None
         self.cache: dict = {}
+
+    def _values(self, mode: int) -> list[np.ndarray]:
+        if mode not in self.values:
+            self.values[mode] = _soft_values(self.analyses, mode)
+        return self.values[mode]
 
     def try_variant(self, adaptive: int, ranked: bool | None, frame: str
                     ) -> tuple[float, DetectResult] | None:
@@ -444,7 +472,7 @@ class _MethodDecoder:
         slots = self.cache["compact"]
         if not len(slots):
             return None
-        _, raw, _ = _votes(analyses, self.values[adaptive], self.key, L, None, self.cache)
+        _, raw, _ = _votes(analyses, self._values(adaptive), self.key, L, None, self.cache)
         sign = 1.0 - 2.0 * compact_whitening(self.key)
         sums = np.bincount(slots, raw, minlength=L) * sign
         bits = (sums < 0).astype(np.uint8)
@@ -471,7 +499,7 @@ class _MethodDecoder:
         L = codeword_length(None)
         if self.expected is not None or _same_as_auto(analyses, L, ranked):
             return None
-        slots, raw, sign = _votes(analyses, self.values[adaptive], self.key, L, ranked, self.cache)
+        slots, raw, sign = _votes(analyses, self._values(adaptive), self.key, L, ranked, self.cache)
         if not len(slots):
             return None
         sums = _slot_sums(slots, raw, sign)
@@ -496,7 +524,7 @@ class _MethodDecoder:
         for batch in (todo[:DECODE_BATCH], todo[DECODE_BATCH:]):
             gathered = []
             for L, ns in batch:
-                slots, raw, sign = _votes(analyses, self.values[adaptive], key, L, ranked, cache)
+                slots, raw, sign = _votes(analyses, self._values(adaptive), key, L, ranked, cache)
                 if len(slots):
                     sums = _slot_sums(slots, raw, sign)
                     # an expected payload's one length is always decoded: its bit errors are asked for

@@ -32,6 +32,9 @@ class Adjacency:
         Vertex on an edge used by more than two faces.
     ring_matrix : scipy.sparse.csr_matrix, uint64
         The same pattern with every entry 1 (for :meth:`ring_sum_u64`).
+    faces : (m, 3) int64
+        The faces (not copied): their winding says which side of the surface is outside
+        (:meth:`corner`, :func:`oriented`).
     """
 
     indptr: np.ndarray
@@ -40,6 +43,27 @@ class Adjacency:
     boundary: np.ndarray
     nonmanifold: np.ndarray
     ring_matrix: sp.csr_matrix
+    faces: np.ndarray
+
+    @cached_property
+    def vertex_face(self) -> np.ndarray:
+        """(n,) int64: one face of each vertex (the last that names it), -1 for a vertex of none."""
+        face = np.full(len(self.degree), -1, np.int64)
+        m = np.arange(len(self.faces), dtype=np.int64)
+        for c in range(3):
+            face[self.faces[:, c]] = m
+        return face
+
+    def corner(self, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The next and previous vertices, in the winding of :attr:`vertex_face`, of the vertices
+        ``which`` (the vertex itself for a vertex of no face)."""
+        which = np.asarray(which, np.int64)
+        face = self.vertex_face[which]
+        rows = self.faces[np.maximum(face, 0)]
+        c = np.argmax(rows == which[:, None], axis=1)
+        k = np.arange(len(which))
+        none = face < 0
+        return (np.where(none, which, rows[k, (c + 1) % 3]), np.where(none, which, rows[k, (c + 2) % 3]))
 
     @cached_property
     def rows(self) -> np.ndarray:
@@ -94,7 +118,26 @@ def adjacency(faces: np.ndarray, n_vertices: int) -> Adjacency:
     nonmanifold[np.searchsorted(indptr, np.flatnonzero(uses > 2), side="right") - 1] = True
     # scipy's own (int32) index arrays, shared rather than converted back
     ring = sp.csr_matrix((np.ones(uses.size, np.uint64), full.indices, full.indptr), shape=(n, n))
-    return Adjacency(indptr, indices, degree, boundary, nonmanifold, ring)
+    return Adjacency(indptr, indices, degree, boundary, nonmanifold, ring, f)
+
+
+def oriented(v: np.ndarray, adj: Adjacency, sel: np.ndarray, mu: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """Turn, in place, the least-variance axis ``axes[:, :, 0]`` of the rings of ``sel`` (means
+    ``mu``) to the side the winding of one of the vertex's faces calls outside, and return ``axes``.
+
+    The face's normal is taken with the ring mean in place of the vertex, so the vertex's own
+    position never enters (the boundary must not move with the carrier).  An eigenvector's sign is
+    otherwise arbitrary; oriented, the offset along it is a signed quantity that the embedder can put
+    on a known side and the detector read linearly (core/README.md, oriented offsets)."""
+    nx, pv = adj.corner(sel)
+    a, b = v[nx] - mu, v[pv] - mu
+    e = axes[:, :, 0]
+    # e . (a x b), written out per component (np.cross is slow on many short rows)
+    dot = (e[:, 0] * (a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1])
+           + e[:, 1] * (a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2])
+           + e[:, 2] * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
+    axes[:, :, 0] = np.where((dot < 0)[:, None], -e, e)
+    return axes
 
 
 def neighbour_moments(

@@ -4,6 +4,7 @@ acceptance tests and the false-positive figure."""
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -150,13 +151,15 @@ def test_the_compact_frame_is_found_below_1024_carriers_and_counted_in_the_false
     assert found.detected and found.crc_ok and found.payload == "".join(map(str, payload))
     assert len(found.bit_confidence) == 32 and min(found.bit_confidence) > 0.5
     # one method: 5 variants x (256 standard lengths + key code) + 48 compact lengths, ~2^-32 each
+    # (the signed variant needs 1024 carriers)
     assert found.false_positive_probability == pytest.approx(1.893e-7, rel=1e-3)
     checked = detect_analyses({"planes": [compact_carriers(payload, 120, 1)]}, KEY, payload)
     assert checked.detected and checked.bit_errors == 0
     # a wrong key reads nothing; many carriers: the compact frame is not tried (nor counted)
     assert not detect_analyses({"planes": [compact_carriers(payload, 120, 1)]}, "another key").detected
     many = detect_analyses({"planes": [carriers_reading(encode(KEY, payload), 1100, 4)]}, KEY)
-    assert many.detected and many.false_positive_probability == pytest.approx(1.781e-7, rel=1e-3)
+    # 6 variants (the signed one too) x (256 standard lengths + key code), no compact frame
+    assert many.detected and many.false_positive_probability == pytest.approx(2.137e-7, rel=1e-3)
 
 
 def test_cached_votes_follow_the_values_not_their_id() -> None:
@@ -189,3 +192,22 @@ def test_median_is_numpys_bit_for_bit(values: list[float], decimals: int) -> Non
         want = float(np.median(x))
     got = detection.median(x)
     assert (np.isnan(got) and np.isnan(want)) or got == want
+
+
+@pytest.mark.parametrize("k", [1100, 900])
+def test_the_signed_variant_reads_the_signed_statistic_from_1024_carriers(k: int) -> None:
+    """Carriers whose unsigned statistic says nothing and whose signed one reads the codeword: the
+    signed variant decodes them from SIGNED_FROM carriers on, and is neither tried nor counted in
+    the false positives below."""
+    payload = np.random.default_rng(7).integers(0, 2, 32).astype(np.uint8)
+    a = carriers_reading(encode(KEY, payload), k, 9)
+    noise = np.random.default_rng(10).normal(0.0, 0.1, k)
+    mixed = replace(a, z=noise, signed=a.z)
+    res = detect_analyses({"planes": [mixed]}, KEY)
+    plain = detect_analyses({"planes": [replace(a, z=noise)]}, KEY)  # no signed statistic
+    assert not plain.detected
+    if k >= detection.SIGNED_FROM:
+        assert res.detected and res.payload == "".join(map(str, payload))
+        assert res.false_positive_probability == pytest.approx(6 / 5 * 1.781e-7, rel=1e-3)
+    else:
+        assert not res.detected

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.analysis import analyse, statistic
+from core.analysis import analyse, keyed_sides, signed_statistic, statistic
 from core.coding import encode
 from core.embedding import closest_on_ellipsoid, embed_parts, target_positions
 from core.slots import assign_slots
@@ -46,6 +46,35 @@ def test_targets_land_at_the_margin_on_the_wanted_side(method: str) -> None:
     assert want[moved] * z[moved] == pytest.approx(np.full(moved.sum(), margin), abs=1e-6)
     # on the right side with the margin asked for: left alone
     assert np.array_equal(target_positions(method, a, new, bits, 0.5 * margin), new)
+
+
+@pytest.mark.parametrize("method", ["planes", "ellipsoids"])
+def test_carriers_moved_outside_go_to_their_keyed_side(method: str) -> None:
+    """A carrier moved outside its boundary goes to its keyed side of its oriented ring (there its
+    signed statistic equals the unsigned one), unless it sat more than half its target offset on
+    the other side; moved inside, it stays on its side.  The keyed sides are half out, half in."""
+    v, f = irregular_sphere(1500, 7)
+    a = analyse(v, f, "key", method)
+    sides = keyed_sides(a.slot_hash)
+    assert 0.4 < (sides > 0).mean() < 0.6
+    y0 = np.einsum("ki,ki->k", a.axes[:, :, 0], v[a.carriers] - a.mu)
+    for bit in (0, 1):
+        bits = np.full(len(a.carriers), bit, np.uint8)
+        new = target_positions(method, a, v[a.carriers], bits, 0.07)
+        moved = np.any(new != v[a.carriers], axis=1)
+        assert moved.sum() > 50
+        y1 = np.einsum("ki,ki->k", a.axes[:, :, 0], new - a.mu)
+        args = (method, new, a.mu, a.axes, a.lam, a.scale)
+        if bit == 0:
+            keyed = moved & (sides * y0 >= -0.5 * np.abs(y1))
+            assert keyed.sum() > 0.9 * moved.sum() and (sides * y1 > 0)[keyed].all()
+            assert (sides * y0 < 0)[keyed].any()  # some crossed to their keyed side
+            assert signed_statistic(*args, sides)[keyed] == pytest.approx(statistic(*args)[keyed])
+            assert (np.sign(y1[moved & ~keyed]) == np.sign(y0[moved & ~keyed])).all()
+        else:
+            off = moved & (np.abs(y1) > 1e-9 * a.scale)  # planes put a flat ring's carrier on it
+            assert (np.sign(y1[off]) == np.sign(y0[off])).all()
+            assert off.sum() > 20 or method == "planes"
 
 
 def test_embedded_carriers_read_the_codeword() -> None:

@@ -54,3 +54,29 @@ def test_lengths_and_diagonal() -> None:
     adj = adjacency(SQUARE.faces, 4)
     assert sorted(np.round(edge_lengths(SQUARE.vertices, adj), 6).tolist()) == [1, 1, 1, 1, round(2**0.5, 6)]
     assert bbox_diagonal(TETRAHEDRON.vertices) == 3**0.5 and bbox_diagonal(np.zeros((0, 3))) == 0.0
+
+
+def test_the_least_variance_axis_is_turned_to_the_side_the_faces_call_outside() -> None:
+    """``oriented``: on an outward-wound closed surface every ring's e1 points away from the centre,
+    on the same surface wound the other way towards it, and the vertex's own position never enters."""
+    from core.analysis import analyse
+    from core.eig3 import eigh3
+    from core.mesh import oriented
+    from tests.core.meshes import irregular_sphere
+
+    v, f = irregular_sphere(800, 3)
+    sel = analyse(v, f, "key", "planes").carriers  # an independent set: no ring holds another
+    assert len(sel) > 100
+    for faces, side in ((f, 1.0), (f[:, ::-1], -1.0)):
+        adj = adjacency(faces, len(v))
+        mu, sigma = neighbour_moments(v, adj, sel)
+        axes = oriented(v, adj, sel, mu, eigh3(sigma)[1])
+        outward = np.einsum("ki,ki->k", axes[:, :, 0], mu) * side
+        assert (outward > 0).all()
+        # the vertices themselves moved far along their axes, to either side: the same orientation
+        moved = v.copy()
+        moved[sel] += 0.3 * np.where(np.arange(len(sel)) % 2 == 0, 1.0, -1.0)[:, None] * axes[:, :, 0]
+        assert np.array_equal(oriented(moved, adj, sel, mu, axes.copy()), axes)
+        flipped = axes.copy()
+        flipped[:, :, 0] *= -1  # whatever sign the eigen-solver gave
+        assert np.array_equal(oriented(v, adj, sel, mu, flipped), axes)
