@@ -257,3 +257,22 @@ def test_tracing_quick(tmp_path):
     assert all(t["trials_accusing"] == 0 and t["trials"] == 5 for t in innocents)
     assert doc["registry"]["same_answers"]
     assert "Same ranking and scores on every backend: yes" in (tmp_path / "tracing.md").read_text()
+
+
+def test_attack_ab_runs_one_row_and_compares_two_runs(tmp_path) -> None:
+    """bench.attack_ab: one mesh x method row has every attack, and --compare totals two runs."""
+    import json
+
+    from bench import attack_ab
+
+    row = attack_ab.run_one("fandisk.off", "planes")
+    cols = [k for k, v in row.items() if isinstance(v, dict)]
+    assert len(cols) == len(attack_ab.ATTACKS) and row["rms"] <= 2e-4
+    assert all(0 <= row[c]["found"] <= row[c]["draws"] for c in cols)
+    worse = {**row, **{c: {**row[c], "found": 0, "bit_errors": 32.0} for c in cols}}
+    a, b = tmp_path / "a.jsonl", tmp_path / "b.jsonl"
+    a.write_text(json.dumps(worse) + "\n")
+    b.write_text(json.dumps(row) + "\n")
+    text = attack_ab.compare(a, b, verbose=False)
+    total = sum(row[c]["found"] for c in cols)
+    assert text.splitlines()[-1] == f"total found 0 -> {total} of {sum(row[c]['draws'] for c in cols)}"
