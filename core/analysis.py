@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.coding import COMPACT_BELOW
 from core.eig3 import eigh3
 from core.geosync import Placement, Rings, geometric_carriers
 from core.hashing import derive, mix64
@@ -120,6 +121,11 @@ def statistic(method: str, v: np.ndarray, mu: np.ndarray, axes: np.ndarray, lam:
     """
     return _statistic(method, v, mu, axes, lam, scale, tol, None)
 
+
+#: connectivity carriers (of a file, in one method) from which the embedder puts carriers on their
+#: keyed sides and the detector reads the signed statistic (:data:`core.detection.SIGNED`): fewer
+#: do not survive noise at any payload length, and every decoding variant adds to the false positives
+SIGNED_FROM = COMPACT_BELOW
 
 #: what :func:`keyed_sides` mixes into a slot hash before taking its top bit
 _SIDE_SALT = np.uint64(0x5D1E5D1E5D1E5D1E)

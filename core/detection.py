@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 
 from core import conv
-from core.analysis import Analysis
+from core.analysis import SIGNED_FROM, Analysis
 from core.coding import (
     COMPACT_BELOW,
     COMPACT_BITS,
@@ -295,10 +295,6 @@ def _compact_confidence(key: str | bytes, slots: np.ndarray, raw: np.ndarray, si
 #: of every vertex, which the scale-weighted votes read; measurements in core/README.md, section 5)
 VARIANTS = ((HARD, None), (ADAPTIVE, None), (ADAPTIVE, True), (ADAPTIVE, False), (SCALED, None),
             (SIGNED, None))
-#: the signed variant is tried on views with at least this many carriers (in one method): it is
-#: for noise and quantisation, which fewer carriers do not survive at any payload length, and each
-#: variant tried adds to the false positives
-SIGNED_FROM = COMPACT_BELOW
 
 
 def view_variants(layer: str, per_method: dict[str, list[Analysis]] | None) -> list[tuple[int, bool | None]]:

@@ -15,6 +15,7 @@ from functools import partial
 import numpy as np
 
 from core.analysis import (
+    SIGNED_FROM,
     Analysis,
     analyse,
     analyse_geometric,
@@ -232,19 +233,20 @@ class _Moves:
 
 
 def _moves(method: str, b: Analysis, bits: np.ndarray, bad: np.ndarray, v: np.ndarray, v0: np.ndarray,
-           margin: float, cap: float, tol: Tolerances) -> _Moves:
+           margin: float, cap: float, tol: Tolerances, keyed: bool = True) -> _Moves:
     """The moves that put the carriers ``bad`` of ``b`` on the side of their ``bits`` with ``margin``;
     a move over ``cap`` (or the carrier's own limit) is cut to it and made when the carrier then
-    still reads its bit with ``tol.clip_margin x margin``, else not made."""
+    still reads its bit with ``tol.clip_margin x margin``, else not made.  ``keyed``: carriers moved
+    outside go to their keyed sides (:func:`target_positions`) where that is within the limit."""
     idx = b.carriers[bad]
     sub = b.subset(bad)
     want = np.where(bits[bad] == 0, 1.0, -1.0)
-    new = target_positions(method, sub, v[idx], bits[bad], margin, tol)
+    new = target_positions(method, sub, v[idx], bits[bad], margin, tol, keyed)
     move = np.linalg.norm(new - v0[idx], axis=1)
     lim = np.minimum(tol.max_local_move * sub.scale, cap)
     ok = move <= lim
     over = np.flatnonzero(~ok)
-    if over.size:  # over the limit on the keyed side: the carrier's own side, when that is shorter
+    if over.size and keyed:  # over the limit on the keyed side: the carrier's own side, when that is shorter
         near = target_positions(method, sub.subset(over), v[idx[over]], bits[bad][over], margin, tol, False)
         near_move = np.linalg.norm(near - v0[idx[over]], axis=1)
         shorter = near_move < move[over]
@@ -347,6 +349,11 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
               for v, f, (adj, lab), p, sel in zip(v0s, faces, prepared, places, chosen0, strict=True)]
     an = [st.local for st in states]
     ranked = ranked_by_default(sum(len(a.carriers) for a in an), L)
+    # keyed sides only where the detector reads the signed statistic: a file of fewer connectivity
+    # carriers embeds as before (each crossing costs displacement and buys nothing there)
+    keyed = sum(len(a.carriers) for a in an) >= SIGNED_FROM
+    for st in states:
+        st.keyed = keyed
 
     def slots_of(hashes: list[np.ndarray]) -> list[np.ndarray]:
         return assign_slots(hashes, L, ranked) if slot_rule is None else slot_rule(hashes, L)
@@ -417,6 +424,7 @@ class _Mesh:
         self.cap = min(own, tol.max_displacement * diagonal)
         self.strength = strength
         self.margin = strength  # smaller when the RMS budget asks for it
+        self.keyed = True  # carriers moved outside go to their keyed sides (set by embed_parts)
 
     def _geometric(self, chosen: tuple[np.ndarray, np.ndarray] | None = None) -> Analysis | None:
         """The geometric carriers at the current positions (``chosen``: the placement's own, when
@@ -450,7 +458,8 @@ class _Mesh:
             return out
 
         def at(m: float, todo: list[tuple[Analysis, np.ndarray, np.ndarray, float]]) -> list[_Moves]:
-            return [_moves(self.method, b, bits, bad, self.v, self.v0, share * m, self.cap, self.tol)
+            return [_moves(self.method, b, bits, bad, self.v, self.v0, share * m, self.cap, self.tol,
+                           self.keyed)
                     for b, bits, bad, share in todo]
 
         todo = needing(self.margin if r == 1 else 0.5 * self.margin)

@@ -115,3 +115,24 @@ def test_the_rms_budget_spends_itself_on_the_margin() -> None:
             assert got > 1.2 * natural  # the room was used: stronger marks
         slots = assign_slots([view.slot_hash], len(word))[0]
         assert ((view.z < 0).astype(np.uint8) == word[slots]).mean() > 0.97
+
+
+@pytest.mark.parametrize(("n", "crossing"), [(2000, False), (6000, True)])
+def test_keyed_sides_from_1024_connectivity_carriers(n: int, crossing: bool) -> None:
+    """Below SIGNED_FROM connectivity carriers (where the detector never reads the signed statistic)
+    every moved carrier stays on its side of its ring's plane; from there some cross to their keyed
+    side."""
+    from core.analysis import SIGNED_FROM
+
+    v, f = irregular_sphere(n, 11)
+    word = encode("key", np.array([1, 0, 1, 1, 0, 1], np.uint8))
+    (new,), _, (view,) = embed_parts([(v, f)], "key", word, "planes", 0.07)
+    assert (len(view.carriers) >= SIGNED_FROM) == crossing
+    a = analyse(v, f, "key", "planes")
+    keep = np.isin(a.carriers, view.carriers)
+    c, mu, e1 = a.carriers[keep], a.mu[keep], a.axes[keep][:, :, 0]
+    y0 = np.einsum("ki,ki->k", e1, v[c] - mu)
+    y1 = np.einsum("ki,ki->k", e1, new[c] - mu)
+    off = np.abs(y1) > 1e-9 * a.scale[keep]
+    crossed = off & (np.sign(y1) != np.sign(y0)) & (y0 != 0)
+    assert crossed.any() == crossing
