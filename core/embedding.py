@@ -97,8 +97,9 @@ def target_positions(method: str, a: Analysis, v: np.ndarray, bits: np.ndarray, 
 
 #: a carrier moved outside its boundary goes to its keyed side of its ring
 #: (:func:`core.analysis.keyed_sides`) unless it is more than this share of its target offset on
-#: the other side (engine A/B on 9 meshes x 2 methods, 198 attacked detections: 0.25 / 0.5 / 1.0
-#: read 154 / 159 / 157, the nearest side 151; core/README.md, signed offsets)
+#: the other side (``bench.attack_ab``, 234 attacked detections: the nearest side 151; every moved
+#: carrier outwards unless 0.25 / 0.5 / 1.0 of it inside 154 / 159 / 157; keyed sides at 0.5, 160;
+#: core/README.md, section 3)
 KEYED_SIDE_FROM = 0.5
 
 
