@@ -211,3 +211,21 @@ def test_the_signed_variant_reads_the_signed_statistic_from_1024_carriers(k: int
         assert res.false_positive_probability == pytest.approx(6 / 5 * 1.781e-7, rel=1e-3)
     else:
         assert not res.detected
+
+
+def test_the_method_whose_carriers_gather_at_a_margin_answers() -> None:
+    """Two methods decode the same untouched file: the one in whose statistic the moved carriers
+    sit at one margin answers, even where the other's carriers disagree less with the codeword;
+    without such a gathering the lower disagreement decides."""
+    payload = np.random.default_rng(3).integers(0, 2, 32).astype(np.uint8)
+    word = encode(KEY, payload)
+    spread = carriers_reading(word, 1100, 5)  # |z| uniform in [0.05, 0.2]: no margin
+    gathered = carriers_reading(word, 1100, 5, flip=0.02)
+    at_margin = np.abs(gathered.z) < 0.12
+    gathered.z[at_margin] = np.sign(gathered.z[at_margin]) * 0.07  # moved to the margin
+    assert detection.margin_share([gathered]) > 0.1 > 0.02 > detection.margin_share([spread])
+    res = detect_analyses({"planes": [spread], "ellipsoids": [gathered]}, KEY)
+    assert res.detected and res.method == "ellipsoids"
+    noisier = carriers_reading(word, 1100, 6, flip=0.02)
+    res = detect_analyses({"planes": [spread], "ellipsoids": [noisier]}, KEY)
+    assert res.detected and res.method == "planes"
