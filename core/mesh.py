@@ -128,7 +128,7 @@ def oriented(v: np.ndarray, adj: Adjacency, sel: np.ndarray, mu: np.ndarray, axe
     The face's normal is taken with the ring mean in place of the vertex, so the vertex's own
     position never enters (the boundary must not move with the carrier).  An eigenvector's sign is
     otherwise arbitrary; oriented, the offset along it is a signed quantity that the embedder can put
-    on a known side and the detector read linearly (core/README.md, oriented offsets)."""
+    on a known side and the detector read linearly (core/README.md, section 3, signed offsets)."""
     nx, pv = adj.corner(sel)
     a, b = v[nx] - mu, v[pv] - mu
     e = axes[:, :, 0]
