@@ -57,8 +57,8 @@ def target_positions(method: str, a: Analysis, v: np.ndarray, bits: np.ndarray, 
     margin : float
     keyed : bool
         Carriers moved outside their boundary go to their keyed side of the ring where that is not
-        much further (:func:`_side`; not the geometric layer's); False: every carrier stays on its
-        side.
+        much further (:func:`_side`), when ``a`` has a signed statistic (the geometric layer has
+        none); False: every carrier stays on its side.
 
     Returns
     -------
@@ -69,8 +69,9 @@ def target_positions(method: str, a: Analysis, v: np.ndarray, bits: np.ndarray, 
     z = statistic(method, v, a.mu, a.axes, a.lam, a.scale, tol)
     need = want * z < margin
     y = np.einsum("kij,ki->kj", a.axes, v - a.mu)
-    # the geometric layer's carriers stay on their sides (analysis.carrier_statistics)
-    sides = keyed_sides(a.slot_hash) if keyed and not a.geometric else None
+    # keyed sides for the carriers whose signed statistic the detector reads (not the geometric
+    # layer's: analysis.carrier_statistics)
+    sides = keyed_sides(a.slot_hash) if keyed and a.signed is not None else None
     s = a.scale
     if method == "planes":
         tau = np.maximum(np.sqrt(a.lam[:, 0]), tol.plane_floor * s)
