@@ -168,34 +168,52 @@ class SurfaceFrame:
 CHUNK = 1 << 17
 
 
-def _face_integrals(v: np.ndarray, f: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+def _face_integrals(v: np.ndarray, f: np.ndarray
+                    ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Exact area, centroid and second moment (about the centroid, per unit area) of the surface,
-    and every face's area: the integrals of 1, x and x x^T over each triangle, summed in chunks of
-    faces (one gather of each corner coordinate per chunk)."""
-    cols = [np.ascontiguousarray(v[:, j]) for j in range(3)]
-    origin = np.array([float(c.mean()) for c in cols])  # a provisional origin keeps the sums small
-    ft = np.ascontiguousarray(f.T)
+    every face's area, and every vertex's sum of the areas of its faces.
+
+    The integral of ``x x^T`` over a triangle is ``area / 12 (sum p_i p_i^T + s s^T)`` (``s`` the sum
+    of its corners): the corner terms are summed per vertex, weighted by its faces' areas, and the
+    ``s s^T`` terms per face, in chunks of faces (temporaries of a few MB: no page faults on large
+    meshes, and little memory in a worker thread's malloc arena)."""
+    n = len(v)
+    q = [np.ascontiguousarray(v[:, j], dtype=np.float64) for j in range(3)]
+    origin = np.array([float(c.mean()) for c in q])  # a provisional origin keeps the sums small
+    q = [c - o for c, o in zip(q, origin, strict=True)]
     total, first, second = 0.0, np.zeros(3), np.zeros((3, 3))
     areas = np.empty(len(f))
     for lo in range(0, len(f), CHUNK):
-        corner = [np.stack([np.take(cols[j], ft[k, lo:lo + CHUNK]) - origin[j] for j in range(3)], axis=1)
-                  for k in range(3)]
-        u, w = corner[1] - corner[0], corner[2] - corner[0]
-        cx = u[:, 1] * w[:, 2] - u[:, 2] * w[:, 1]
-        cy = u[:, 2] * w[:, 0] - u[:, 0] * w[:, 2]
-        cz = u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]
+        ft = np.ascontiguousarray(f[lo:lo + CHUNK].T)
+        c = [[np.take(q[j], ft[k]) for j in range(3)] for k in range(3)]
+        ux, uy, uz = (c[1][j] - c[0][j] for j in range(3))
+        wx, wy, wz = (c[2][j] - c[0][j] for j in range(3))
+        cx, cy, cz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
         area = 0.5 * np.sqrt(cx * cx + cy * cy + cz * cz)
         areas[lo:lo + CHUNK] = area
-        s = corner[0] + corner[1] + corner[2]
         total += float(area.sum())
-        first += area @ s / 3.0
-        # exact: the integral of x x^T over a triangle is area / 12 (sum p_i p_i^T + s s^T)
-        for q in (*corner, s):
-            second += (q * area[:, None]).T @ q / 12.0
+        s = [c[0][j] + c[1][j] + c[2][j] for j in range(3)]
+        for i in range(3):
+            weighted = area * s[i]
+            first[i] += float(weighted.sum()) / 3.0
+            for j in range(i, 3):
+                second[i, j] += _dot(weighted, s[j])
+    around = (np.bincount(f[:, 0], areas, minlength=n) + np.bincount(f[:, 1], areas, minlength=n)
+              + np.bincount(f[:, 2], areas, minlength=n))
+    for i in range(3):
+        weighted = around * q[i]
+        for j in range(i, 3):
+            second[i, j] += _dot(weighted, q[j])
+    second = (second + np.triu(second, 1).T) / 12.0
     if not total > 0:
-        return 0.0, origin, second, areas
+        return 0.0, origin, second, areas, around
     mean = first / total
-    return total, origin + mean, second / total - np.outer(mean, mean), areas
+    return total, origin + mean, second / total - np.outer(mean, mean), areas, around
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    """``a . b`` without BLAS (whose threads are slow beside another process: :func:`in_frame`)."""
+    return float(np.einsum("i,i->", a, b))
 
 
 _SUB_POINTS: dict[int, np.ndarray] = {}
@@ -226,58 +244,75 @@ def angular_spectrum(vertices: np.ndarray, faces: np.ndarray, areas: np.ndarray,
 
     Every face is cut into ``n x n`` sub-triangles spanning at most :data:`ANGLE_SPAN` each
     (``n <= SUBDIVIDE``) and each contributes its area at its centroid; the weights are binned by
-    angle (:data:`ANGLE_BINS`) and transformed by one FFT."""
-    q = np.asarray(vertices, np.float64) - centroid
-    px, py = q @ ex, q @ ey
-    ft = np.ascontiguousarray(np.asarray(faces, np.int64).reshape(-1, 3).T)
-    x = [np.take(px, ft[k]) for k in range(3)]
-    y = [np.take(py, ft[k]) for k in range(3)]
-    # the angle each edge subtends about the axis: |a x b| / (|a| |b|) is its sine, which is the
-    # angle itself to 2 % up to 20 degrees; wider edges (and edges through the axis) get arctan2
-    r = [np.sqrt(x[k] * x[k] + y[k] * y[k]) for k in range(3)]
-    span = np.zeros(len(x[0]))
-    for k in range(3):
-        a, b = k, (k + 1) % 3
-        cross = np.abs(x[a] * y[b] - y[a] * x[b])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            sine = cross / (r[a] * r[b])
-        wide = ~(sine < 0.34) | (x[a] * x[b] + y[a] * y[b] <= 0)
-        if wide.any():
-            sine[wide] = np.arctan2(cross[wide], x[a][wide] * x[b][wide] + y[a][wide] * y[b][wide])
-        span = np.maximum(span, sine)
-    n = np.clip(np.ceil(span / ANGLE_SPAN), 1, SUBDIVIDE).astype(np.int64)
+    angle (:data:`ANGLE_BINS`) and transformed by one FFT.  Faces are taken in chunks of
+    :data:`CHUNK` (a few MB of temporaries: whole-mesh arrays of every corner made 400 MB at 1M
+    vertices)."""
+    v = np.asarray(vertices, np.float64)
+    q = [np.ascontiguousarray(v[:, k]) - centroid[k] for k in range(3)]
+    px = q[0] * ex[0] + q[1] * ex[1] + q[2] * ex[2]
+    py = q[0] * ey[0] + q[1] * ey[1] + q[2] * ey[2]
+    del q
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
     bins = ANGLE_BINS
     scale = bins / (2.0 * np.pi)
-    # faces narrower than the span (nearly all on a fine mesh): their area at their centroid
-    single = n == 1
-    if single.all():
-        cx, cy, ca = (x[0] + x[1] + x[2]) / 3.0, (y[0] + y[1] + y[2]) / 3.0, areas
-    else:
-        one = np.flatnonzero(single)
-        cx = (x[0][one] + x[1][one] + x[2][one]) / 3.0
-        cy = (y[0][one] + y[1][one] + y[2][one]) / 3.0
-        ca = areas[one]
-    b = ((np.arctan2(cy, cx) + np.pi) * scale).astype(np.int64)
-    hist = np.bincount(np.minimum(b, bins - 1), np.sqrt(cx * cx + cy * cy) * ca,
-                       minlength=bins).astype(np.float64)
+    hist = np.zeros(bins)
+    wide_faces, wide_n = [], []
+    for lo in range(0, len(faces), CHUNK):
+        ft = np.ascontiguousarray(faces[lo:lo + CHUNK].T)
+        x = [np.take(px, ft[k]) for k in range(3)]
+        y = [np.take(py, ft[k]) for k in range(3)]
+        # the angle each edge subtends about the axis: |a x b| / (|a| |b|) is its sine, which is the
+        # angle itself to 2 % up to 20 degrees; wider edges (and edges through the axis) get arctan2
+        r = [np.sqrt(x[k] * x[k] + y[k] * y[k]) for k in range(3)]
+        span = np.zeros(len(x[0]))
+        for k in range(3):
+            a, b = k, (k + 1) % 3
+            cross = np.abs(x[a] * y[b] - y[a] * x[b])
+            dot = x[a] * x[b] + y[a] * y[b]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                sine = cross / (r[a] * r[b])
+            wide = ~(sine < 0.34) | (dot <= 0)
+            if wide.any():
+                sine[wide] = np.arctan2(cross[wide], dot[wide])
+            np.maximum(span, sine, out=span)
+        n = np.clip(np.ceil(span / ANGLE_SPAN), 1, SUBDIVIDE).astype(np.int64)
+        # faces narrower than the span (nearly all on a fine mesh): their area at their centroid
+        single = n == 1
+        ca = areas[lo:lo + CHUNK]
+        if single.all():
+            cx, cy = (x[0] + x[1] + x[2]) / 3.0, (y[0] + y[1] + y[2]) / 3.0
+        else:
+            one = np.flatnonzero(single)
+            cx = (x[0][one] + x[1][one] + x[2][one]) / 3.0
+            cy = (y[0][one] + y[1][one] + y[2][one]) / 3.0
+            ca = ca[one]
+            many = np.flatnonzero(~single)
+            wide_faces.append(many + lo)
+            wide_n.append(n[many])
+        b = ((np.arctan2(cy, cx) + np.pi) * scale).astype(np.int64)
+        hist += np.bincount(np.minimum(b, bins - 1), np.sqrt(cx * cx + cy * cy) * ca, minlength=bins)
     # the wider faces (few: 2 % of the 1M-vertex turbine blade's, near the axis), grouped by n
-    wider = np.flatnonzero(~single)
-    by_n = wider[np.argsort(n[wider], kind="stable")]
-    counts = np.bincount(n[wider], minlength=SUBDIVIDE + 1)
-    ends = np.cumsum(counts)
-    for k in map(int, np.flatnonzero(counts)):
-        uw = _sub_points(k)
-        sel = by_n[ends[k] - counts[k]:ends[k]]
-        step = max(1, SAMPLE_CHUNK // len(uw))
-        for lo in range(0, len(sel), step):
-            c = sel[lo:lo + step]
+    if wide_faces:
+        wider, n = np.concatenate(wide_faces), np.concatenate(wide_n)
+        order = np.argsort(n, kind="stable")
+        by_n = wider[order]
+        counts = np.bincount(n, minlength=SUBDIVIDE + 1)
+        ends = np.cumsum(counts)
+        for k in map(int, np.flatnonzero(counts)):
+            uw = _sub_points(k)
+            sel = by_n[ends[k] - counts[k]:ends[k]]
+            step = max(1, SAMPLE_CHUNK // len(uw))
             u, w = uw[None, :, 0], uw[None, :, 1]
-            x0, y0 = x[0][c], y[0][c]
-            sx = x0[:, None] + u * (x[1][c] - x0)[:, None] + w * (x[2][c] - x0)[:, None]
-            sy = y0[:, None] + u * (y[1][c] - y0)[:, None] + w * (y[2][c] - y0)[:, None]
-            mass = np.sqrt(sx * sx + sy * sy) * (areas[c] / (k * k))[:, None]
-            b = ((np.arctan2(sy, sx) + np.pi) * scale).astype(np.int64)
-            hist += np.bincount(np.minimum(b, bins - 1).ravel(), mass.ravel(), minlength=bins)
+            for lo in range(0, len(sel), step):
+                c = sel[lo:lo + step]
+                corner = faces[c]
+                x0, x1, x2 = (px[corner[:, j]] for j in range(3))
+                y0, y1, y2 = (py[corner[:, j]] for j in range(3))
+                sx = x0[:, None] + u * (x1 - x0)[:, None] + w * (x2 - x0)[:, None]
+                sy = y0[:, None] + u * (y1 - y0)[:, None] + w * (y2 - y0)[:, None]
+                mass = np.sqrt(sx * sx + sy * sy) * (areas[c] / (k * k))[:, None]
+                b = ((np.arctan2(sy, sx) + np.pi) * scale).astype(np.int64)
+                hist += np.bincount(np.minimum(b, bins - 1).ravel(), mass.ravel(), minlength=bins)
     m = np.arange(1, MAX_HARMONIC + 1)
     norm = float(hist.sum()) or 1.0
     # bin b holds angles about (b + 1/2) 2 pi / bins - pi
@@ -345,13 +380,9 @@ def surface_frame(vertices: np.ndarray, faces: np.ndarray) -> SurfaceFrame | Non
     f = np.asarray(faces, np.int64).reshape(-1, 3)
     if len(f) == 0:
         return None
-    total, centroid, second, areas = _face_integrals(v, f)
+    total, centroid, second, areas, around = _face_integrals(v, f)
     if not total > 0:
         return None
-    weight = (np.bincount(f[:, 0], areas, minlength=len(v)) + np.bincount(f[:, 1], areas, minlength=len(v))
-              + np.bincount(f[:, 2], areas, minlength=len(v))) / 3.0
-    used = np.flatnonzero(weight > 0)
-    wv = weight[used]
     lam, vec = np.linalg.eigh(second)
     lam, vec = np.maximum(lam[::-1], 0.0), vec[:, ::-1].T.copy()
     if not lam[0] > 0:
@@ -363,9 +394,15 @@ def surface_frame(vertices: np.ndarray, faces: np.ndarray) -> SurfaceFrame | Non
     close = ratios < DEGENERATE
     if close.all():
         return None
-    # third moments along each axis (their signs fix the axes')
-    y = in_frame(v[used], centroid, vec)
-    third = wv @ (y * y * y) / total
+    # third moments along each axis (their signs fix the axes'), a vertex weighted by a third of
+    # the area of its faces (a vertex of no face weighs nothing)
+    q = [np.ascontiguousarray(v[:, k]) - centroid[k] for k in range(3)]
+    weight = around / 3.0
+    third = np.empty(3)
+    for j in range(3):
+        y = q[0] * vec[j, 0] + q[1] * vec[j, 1] + q[2] * vec[j, 2]
+        third[j] = _dot(weight, y * y * y) / total
+    del q
     # a flat surface has no spread along its normal: no skew there (1e-300 ** 1.5 is 0: 0 / 0)
     skew = np.where(lam > 0, third / np.where(lam > 0, lam, 1.0) ** 1.5, 0.0)
     axes = vec * np.where(skew >= 0, 1.0, -1.0)[:, None]
