@@ -538,7 +538,12 @@ class Placement:
 def embed_placement(vertices: np.ndarray, faces: np.ndarray, adj: Adjacency,
                     key: str | bytes) -> Placement | None:
     """The embedder's placement of a mesh, or ``None`` when its surface has no frame."""
-    frame = surface_frame(vertices, faces)
+    return placement_in(surface_frame(vertices, faces), vertices, adj, key)
+
+
+def placement_in(frame: SurfaceFrame | None, vertices: np.ndarray, adj: Adjacency,
+                 key: str | bytes) -> Placement | None:
+    """:func:`embed_placement` with the mesh's :func:`surface_frame` already made."""
     if frame is None:
         return None
     rung, chosen = choose_rung(vertices, adj, frame, frame.axes, key)

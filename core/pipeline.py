@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from functools import partial
 
@@ -34,7 +35,15 @@ from core.detection import (
 from core.embedding import EmbedStats, Quantize, SlotRule, embed_parts
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, FORMATS, Limits, MeshDocument, MeshPart, read_mesh, weld
-from core.geosync import CARRIER_SHARE, Placement, Rings, detect_placements, embed_placement
+from core.geosync import (
+    CARRIER_SHARE,
+    Placement,
+    Rings,
+    SurfaceFrame,
+    detect_placements,
+    placement_in,
+    surface_frame,
+)
 from core.hashing import derive
 from core.mesh import Adjacency, adjacency, bbox_diagonal
 from core.options import DEFAULT_METHOD, METHODS, Options
@@ -601,26 +610,49 @@ def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str |
                                     list[tuple[np.ndarray, Analysis]]]:
     """:func:`~core.analysis.prepare` of every mesh, where its geometric carriers are
     (:func:`_placements`), and its connectivity layer's selection (priorities and analysis with
-    ``method``, as :func:`~core.embedding.embed_parts` takes them: made once for every try)."""
+    ``method``, as :func:`~core.embedding.embed_parts` takes them: made once for every try).
+
+    The surfaces' frames need neither adjacency nor labels: for a file of :data:`PARALLEL_FROM`
+    vertices or more a second thread makes them while this one makes the rest (numpy and scipy
+    release the GIL in the large array operations of both).  The frame's temporaries are a few MB
+    (chunks of faces), so the thread's own malloc arena stays small."""
     vs = [np.asarray(v, np.float64) for v, _ in meshes]
-    prepared = prepare(vs, [f for _, f in meshes])
-    selections = []
-    for v, (_, f), (adj, lab) in zip(vs, meshes, prepared, strict=True):
-        prio = priorities(v, adj, lab, key)
-        selections.append((prio, analyse_methods(v, f, key, [method], adj, lab, TOL, prio)[method]))
-    return prepared, _placements(meshes, [adj for adj, _ in prepared], key, L), selections
+    total = sum(len(v) for v in vs)
+    pool = ThreadPoolExecutor(1) if total >= PARALLEL_FROM else None  # (well above GEOMETRIC_MIN_VERTICES)
+    try:
+        frames = None if pool is None else pool.submit(lambda: [surface_frame(v, f) for v, f in meshes])
+        prepared = prepare(vs, [f for _, f in meshes])
+        selections = []
+        for v, (_, f), (adj, lab) in zip(vs, meshes, prepared, strict=True):
+            prio = priorities(v, adj, lab, key)
+            selections.append((prio, analyse_methods(v, f, key, [method], adj, lab, TOL, prio)[method]))
+        made = None if frames is None else frames.result()
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    return prepared, _placements(meshes, [adj for adj, _ in prepared], key, L, made), selections
+
+
+#: files of fewer vertices are prepared in one thread (:func:`_prepared_placements`): their frame
+#: costs about 20 ms, and a second thread's stack (8 MiB of address space) is room a service
+#: worker's RLIMIT_AS would give up for nothing (tests/app give a 10k-vertex embed 48 MB above an
+#: idle worker)
+PARALLEL_FROM = 50_000
 
 
 def _placements(meshes: list[tuple[np.ndarray, np.ndarray]], adjs: Sequence[Adjacency], key: str | bytes,
-                L: int) -> list[Placement | None]:
-    """Where each mesh's geometric carriers are, or None for a mesh without them (no frame, too
-    few carriers, or too few in the whole file for a codeword of ``L`` bits)."""
+                L: int, frames: Sequence[SurfaceFrame | None] | None = None) -> list[Placement | None]:
+    """Where each mesh's geometric carriers are (``frames``: each mesh's
+    :func:`~core.geosync.surface_frame`, when the caller made them), or None for a mesh without
+    them (no frame, too few carriers, or too few in the whole file for a codeword of ``L`` bits)."""
     if sum(len(v) for v, _ in meshes) < GEOMETRIC_MIN_VERTICES:
         return [None] * len(meshes)
+    if frames is None:
+        frames = [surface_frame(v, f) for v, f in meshes]
     out: list[Placement | None] = []
     total = 0
-    for (v, f), adj in zip(meshes, adjs, strict=True):
-        p = embed_placement(v, f, adj, key)
+    for (v, _), adj, frame in zip(meshes, adjs, frames, strict=True):
+        p = placement_in(frame, v, adj, key)
         count = 0 if p is None else p.count
         out.append(p if count >= GEOMETRIC_PART_MIN else None)
         total += count if count >= GEOMETRIC_PART_MIN else 0
