@@ -50,7 +50,7 @@ from core.options import DEFAULT_METHOD, METHODS, Options
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
 from core.resample import undo_subdivision
 from core.slots import assign_slots, bucketed_slots, own_copy, ranked_by_default
-from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, Labels
+from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, Labels, vertex_labels
 from core.tolerances import TOL, Tolerances
 from core.unsmooth import MIN_SCORE, choose_iterations, unsmooth
 
@@ -612,25 +612,32 @@ def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str |
     (:func:`_placements`), and its connectivity layer's selection (priorities and analysis with
     ``method``, as :func:`~core.embedding.embed_parts` takes them: made once for every try).
 
-    The surfaces' frames need neither adjacency nor labels: for a file of :data:`PARALLEL_FROM`
-    vertices or more a second thread makes them while this one makes the rest (numpy and scipy
-    release the GIL in the large array operations of both).  The frame's temporaries are a few MB
-    (chunks of faces), so the thread's own malloc arena stays small."""
+    The geometric layer needs no labels and its frame no adjacency: for a file of
+    :data:`PARALLEL_FROM` vertices or more a second thread makes the surfaces' frames while this one
+    makes the adjacency, then chooses the geometric carriers while this one makes the labels and
+    the selection (numpy and scipy release the GIL in the large array operations of both).  The
+    frame's temporaries are a few MB (chunks of faces) and the choice's about 100 MB at 1M
+    vertices, which is all the thread's own malloc arena holds."""
     vs = [np.asarray(v, np.float64) for v, _ in meshes]
-    total = sum(len(v) for v in vs)
-    pool = ThreadPoolExecutor(1) if total >= PARALLEL_FROM else None  # (well above GEOMETRIC_MIN_VERTICES)
-    try:
-        frames = None if pool is None else pool.submit(lambda: [surface_frame(v, f) for v, f in meshes])
-        prepared = prepare(vs, [f for _, f in meshes])
-        selections = []
-        for v, (_, f), (adj, lab) in zip(vs, meshes, prepared, strict=True):
+    faces = [f for _, f in meshes]
+
+    def selections(prepared: list[tuple[Adjacency, Labels]]) -> list[tuple[np.ndarray, Analysis]]:
+        out = []
+        for v, f, (adj, lab) in zip(vs, faces, prepared, strict=True):
             prio = priorities(v, adj, lab, key)
-            selections.append((prio, analyse_methods(v, f, key, [method], adj, lab, TOL, prio)[method]))
-        made = None if frames is None else frames.result()
-    finally:
-        if pool is not None:
-            pool.shutdown()
-    return prepared, _placements(meshes, [adj for adj, _ in prepared], key, L, made), selections
+            out.append((prio, analyse_methods(v, f, key, [method], adj, lab, TOL, prio)[method]))
+        return out
+
+    if sum(len(v) for v in vs) < PARALLEL_FROM:  # (well above GEOMETRIC_MIN_VERTICES)
+        prepared = prepare(vs, faces)
+        return prepared, _placements(meshes, [adj for adj, _ in prepared], key, L), selections(prepared)
+    with ThreadPoolExecutor(1) as pool:
+        frames = pool.submit(lambda: [surface_frame(v, f) for v, f in meshes])
+        adjs = [adjacency(f, len(v)) for v, f in zip(vs, faces, strict=True)]
+        # queued behind the frames on the one worker: it runs while the labels are made here
+        placed = pool.submit(lambda: _placements(meshes, adjs, key, L, frames.result()))
+        prepared = [(adj, vertex_labels(v, adj)) for v, adj in zip(vs, adjs, strict=True)]
+        return prepared, placed.result(), selections(prepared)
 
 
 #: files of fewer vertices are prepared in one thread (:func:`_prepared_placements`): their frame
