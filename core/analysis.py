@@ -260,6 +260,45 @@ def carrier_statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray,
     return out
 
 
+def reanalysed(prev: Analysis, v: np.ndarray, adj: Adjacency, labels: Labels, key: str | bytes, method: str,
+               prio: np.ndarray, moved: np.ndarray, tol: Tolerances = TOL) -> Analysis:
+    """:func:`analyse` of the connectivity layer at positions ``v`` with priorities ``prio``, equal to
+    it array for array, reading only the carriers that ``prev`` cannot give.
+
+    ``prev``: an analysis of the same mesh, labels and method whose boundaries were read while no
+    vertex of the mask ``moved`` had moved, and whose statistics are those at ``v`` (what the
+    embedder keeps: it reads a carrier again when it moves it).  A carrier of both selections with
+    no moved neighbour keeps ``prev``'s boundary, its ring being where it was (and it passed the
+    flatness test then); the others are read.  The scale test (against the median of every
+    selected carrier's) is made again over the whole selection, as :func:`carrier_statistics` does."""
+    sel = select_carriers(adj, prio, labels.usable)
+    if not len(prev.carriers) or prev.signed is None or prev.geometric:
+        return analyse(v, adj.faces, key, method, adj=adj, labels=labels, tol=tol, prio=prio)
+    at = np.minimum(np.searchsorted(prev.carriers, sel), len(prev.carriers) - 1)
+    ring_moved = adj.ring_sum_u64(moved.astype(np.uint64)) > 0
+    reuse = (prev.carriers[at] == sel) & ~ring_moved[sel]
+    at, fresh = at[reuse], np.flatnonzero(~reuse)
+    k = len(sel)
+    mu, axes, lam, scale = np.empty((k, 3)), np.empty((k, 3, 3)), np.empty((k, 3)), np.empty(k)
+    z, signed = np.empty(k), np.empty(k)
+    mu[reuse], axes[reuse], lam[reuse] = prev.mu[at], prev.axes[at], prev.lam[at]
+    scale[reuse], z[reuse], signed[reuse] = prev.scale[at], prev.z[at], prev.signed[at]
+    f_mu, f_axes, f_lam, f_scale = ring_boundaries(v, adj, sel[fresh])
+    ok = np.ones(k, bool)
+    ok[fresh] = (f_scale > 0) & (f_lam[:, 1] > tol.min_flatness * np.maximum(f_lam[:, 2], 1e-300))
+    mu[fresh], axes[fresh], scale[fresh] = f_mu, f_axes, f_scale
+    lam[fresh] = method_moments(method, f_lam, f_scale, tol)
+    if ok.any():
+        ok &= scale <= tol.max_scale * np.median(scale[ok])
+    hashes = mix64(labels.labels[sel] ^ _key_salts(key)[1])
+    read = fresh[ok[fresh]]
+    args = (method, v[sel[read]], mu[read], axes[read], lam[read], scale[read])
+    z[read] = statistic(*args, tol)
+    signed[read] = signed_statistic(*args, keyed_sides(hashes[read]), tol)
+    return Analysis(sel[ok], hashes[ok], z[ok], mu[ok], axes[ok], lam[ok], scale[ok], labels.regular, False,
+                    signed=signed[ok])
+
+
 def analyse_geometric(vertices: np.ndarray, adj: Adjacency, key: str | bytes, methods: Sequence[str],
                       placement: Placement, tol: Tolerances = TOL,
                       chosen: tuple[np.ndarray, np.ndarray] | None = None,

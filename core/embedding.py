@@ -23,6 +23,7 @@ from core.analysis import (
     method_moments,
     prepare,
     priorities,
+    reanalysed,
     ring_boundaries,
     same_order,
     signed_statistic,
@@ -381,15 +382,13 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
         changed = [st.reselect() for st in states]  # every mesh, not just up to the first change
         if any(changed):
             continue
-        if not _reselect([st.v for st in states], faces, [st.adj for st in states],
-                         [st.labels for st in states], key, method, tol, chosen, an, slots_of, codeword):
+        if not _reselect(states, key, method, tol, chosen, an, slots_of, codeword):
             break
     else:
         # out of rounds: the caller verifies what the detector will see
         for st in states:
             st.reselect()
-        _reselect([st.v for st in states], faces, [st.adj for st in states], [st.labels for st in states],
-                  key, method, tol, chosen, an, None, codeword)
+        _reselect(states, key, method, tol, chosen, an, None, codeword)
     stats = [EmbedStats(len(st.local0), int(st.skipped.sum()), int(np.any(st.v != st.v0, axis=1).sum()),
                         rounds[k], st.view) for k, st in enumerate(states)]
     return [st.v for st in states], stats, an
@@ -575,24 +574,26 @@ class _Mesh:
         return new > SETTLED * max(len(now.carriers), 1)
 
 
-def _reselect(vs: list[np.ndarray], faces: list[np.ndarray], adjs: list[Adjacency], labels: list[Labels],
-              key: str | bytes, method: str, tol: Tolerances, chosen: list[np.ndarray], an: list[Analysis],
-              slots_of: Callable[[list[np.ndarray]], list[np.ndarray]] | None, codeword: np.ndarray) -> bool:
+def _reselect(states: list[_Mesh], key: str | bytes, method: str, tol: Tolerances, chosen: list[np.ndarray],
+              an: list[Analysis], slots_of: Callable[[list[np.ndarray]], list[np.ndarray]] | None,
+              codeword: np.ndarray) -> bool:
     """Make again, in place, the selection of every mesh whose priorities no longer order its
     neighbours as when it was made (``chosen``).  True when more moves are needed: a selection was
     made again and, with ``slots_of`` (the slot rule), some slot's centred hard votes no longer
     agree with ``codeword`` (when they all do, the detector's first variant reads the codeword
     exactly, and the handful of carriers the new selection adds or drops is absorbed: a 1M-vertex
-    mesh re-selected three times in a row before this check)."""
+    mesh re-selected three times in a row before this check).  The new selection reads only the
+    carriers whose boundaries the moves changed or that it adds (:func:`~core.analysis.reanalysed`)."""
     again = False
-    for k, v in enumerate(vs):
-        if labels[k].regular:
+    for k, st in enumerate(states):
+        if st.labels.regular:
             continue  # analysed afresh after every move already
-        now = priorities(v, adjs[k], labels[k], key)
-        if same_order(chosen[k], now, adjs[k]):
+        now = priorities(st.v, st.adj, st.labels, key)
+        if same_order(chosen[k], now, st.adj):
             continue
         chosen[k] = now
-        an[k] = analyse(v, faces[k], key, method, adj=adjs[k], labels=labels[k], tol=tol, prio=now)
+        moved = np.any(st.v != st.v0, axis=1)
+        an[k] = reanalysed(an[k], st.v, st.adj, st.labels, key, method, now, moved, tol)
         again = True
     if not again or slots_of is None:
         return again
