@@ -27,8 +27,9 @@ from core.coding import COMPACT_BELOW
 from core.eig3 import eigh3
 from core.geosync import Placement, Rings, geometric_carriers
 from core.hashing import derive, mix64
-from core.mesh import Adjacency, adjacency, neighbour_moments, oriented
+from core.mesh import Adjacency, adjacency, columns, neighbour_moments, oriented
 from core.options import METHODS
+from core.parallel import by_rows
 from core.sync import Labels, select_carriers, tie_broken, vertex_labels
 from core.tolerances import TOL, Tolerances
 
@@ -221,11 +222,18 @@ def ring_boundaries(v: np.ndarray, adj: Adjacency, sel: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """First and second moments of the 1-rings of the vertices ``sel``: the ring means ``mu``,
     principal axes (the least-variance one :func:`~core.mesh.oriented`), moments ``lam`` (clipped at
-    0) and scale ``sqrt(sum lam)``."""
-    mu, sigma = neighbour_moments(v, adj, sel)
-    lam, axes = eigh3(sigma)
-    lam = np.maximum(lam, 0.0)
-    return mu, oriented(v, adj, sel, mu, axes), lam, np.sqrt(lam.sum(axis=1))
+    0) and scale ``sqrt(sum lam)``; a large ``sel`` in two threads (:func:`~core.parallel.by_rows`)."""
+
+    cols = columns(v)
+
+    def rows(part: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        mu, sigma = neighbour_moments(v, adj, part, cols)
+        lam, axes = eigh3(sigma)
+        lam = np.maximum(lam, 0.0)
+        return mu, oriented(v, adj, part, mu, axes), lam, np.sqrt(lam.sum(axis=1))
+
+    mu, axes, lam, scale = by_rows(rows, np.asarray(sel, np.int64))
+    return mu, axes, lam, scale
 
 
 def method_moments(method: str, lam: np.ndarray, scale: np.ndarray, tol: Tolerances = TOL) -> np.ndarray:

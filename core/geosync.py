@@ -34,7 +34,8 @@ import numpy as np
 
 from core.eig3 import eigh3
 from core.hashing import combine, derive, mix64
-from core.mesh import Adjacency, neighbour_moments
+from core.mesh import Adjacency, columns, neighbour_moments
+from core.parallel import by_rows
 
 #: two sqrt-eigenvalues of the surface's second moment within this ratio are one degenerate pair
 #: (the gear: 1.011, whose axes turned 0.2-0.4 degrees under simplification; bunny 1.28: 0.03)
@@ -122,7 +123,10 @@ class Rings:
         ask[which[~self._known[which]]] = True
         missing = np.flatnonzero(ask)
         if missing.size:
-            self._least[missing] = eigh3(neighbour_moments(self.vertices, self.adj, missing)[1])[1][:, :, 0]
+            cols = columns(self.vertices)
+            self._least[missing] = by_rows(
+                lambda part: (eigh3(neighbour_moments(self.vertices, self.adj, part, cols)[1])[1][:, :, 0],),
+                missing)[0]
             self._known[missing] = True
         return self._least[which]
 

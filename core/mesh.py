@@ -140,8 +140,16 @@ def oriented(v: np.ndarray, adj: Adjacency, sel: np.ndarray, mu: np.ndarray, axe
     return axes
 
 
+def columns(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The three coordinate columns of ``vertices`` (n, 3), each contiguous (1-D gathers from them
+    are several times faster than fancy indexing of rows)."""
+    x, y, z = (np.ascontiguousarray(vertices[:, c], dtype=np.float64) for c in range(3))
+    return x, y, z
+
+
 def neighbour_moments(
-    vertices: np.ndarray, adj: Adjacency, which: np.ndarray
+    vertices: np.ndarray, adj: Adjacency, which: np.ndarray,
+    cols: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Mean and covariance of the 1-ring neighbours of the vertices ``which`` (eqs. 2-3).
 
@@ -151,6 +159,8 @@ def neighbour_moments(
     adj : Adjacency
     which : (k,) int64
         Vertices whose neighbourhoods are wanted (each with degree >= 1).
+    cols : tuple of three (n,) float64, optional
+        :func:`columns` of ``vertices``, when the caller has them.
 
     Returns
     -------
@@ -167,10 +177,12 @@ def neighbour_moments(
     w = 1.0 / deg
     # one contiguous coordinate at a time: 1-D gathers and bincounts are several times faster
     # than fancy indexing of (n, 3) rows
+    if cols is None:
+        cols = columns(vertices)
     mu = np.empty((k, 3))
     d = []
     for c in range(3):
-        pc = np.take(np.ascontiguousarray(vertices[:, c]), nb)
+        pc = np.take(cols[c], nb)
         m = np.bincount(seg, pc, minlength=k) * w
         mu[:, c] = m
         d.append(pc - np.take(m, seg))

@@ -80,3 +80,22 @@ def test_the_least_variance_axis_is_turned_to_the_side_the_faces_call_outside() 
         flipped = axes.copy()
         flipped[:, :, 0] *= -1  # whatever sign the eigen-solver gave
         assert np.array_equal(oriented(v, adj, sel, mu, flipped), axes)
+
+
+def test_rows_split_over_two_threads_give_the_same_arrays(monkeypatch) -> None:
+    # ring boundaries of many vertices in chunks, every other one in the worker thread: bit for bit
+    # what one call in this thread gives, in the order of the rows
+    import core.parallel as parallel
+    from core.analysis import ring_boundaries
+    from tests.core.meshes import irregular_sphere
+
+    v, f = irregular_sphere(20000, 7)
+    adj = adjacency(f, len(v))
+    sel = np.random.default_rng(1).permutation(len(v))[:15000]
+    monkeypatch.setattr(parallel, "SPLIT_FROM", 10**9)
+    one = ring_boundaries(v, adj, sel)
+    monkeypatch.setattr(parallel, "SPLIT_FROM", 1000)
+    monkeypatch.setattr(parallel, "CHUNK_ROWS", 1024)
+    two = ring_boundaries(v, adj, sel)
+    for a, b in zip(one, two, strict=True):
+        assert np.array_equal(a, b)

@@ -1,0 +1,51 @@
+"""Per-row numpy work split over two threads.
+
+Much of the engine's time on a large mesh goes to computations made row by row over a set of
+vertices (each carrier's ring moments, eigenvectors and orientation): the result for a row does
+not depend on the other rows, so the rows can be cut into chunks, every other one computed in a
+worker thread while the caller computes the rest (numpy releases the GIL in its large array
+loops), and the results concatenated in order: the same arrays, bit for bit, in about 0.6 of the
+time on two cores (``core/README.md``, speed).  Chunks of :data:`CHUNK_ROWS` keep the temporaries
+small, and with them the worker thread's own malloc arena.  Below :data:`SPLIT_FROM` rows
+everything stays in the caller's thread: a small mesh gains nothing, and a service worker capped
+in address space (``RLIMIT_AS``) is not asked for a thread's stack and arena.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+
+import numpy as np
+
+#: rows from which a computation is split over two threads
+SPLIT_FROM = 50_000
+#: rows per chunk
+CHUNK_ROWS = 1 << 15
+
+_pool: ThreadPoolExecutor | None = None
+_lock = threading.Lock()
+_NAME = "meshmark-rows"
+
+
+def _submit(fn: Callable[[], list[tuple[np.ndarray, ...]]]) -> Future[list[tuple[np.ndarray, ...]]]:
+    global _pool
+    with _lock:
+        if _pool is None:
+            _pool = ThreadPoolExecutor(1, thread_name_prefix=_NAME)
+        return _pool.submit(fn)
+
+
+def by_rows(fn: Callable[[np.ndarray], tuple[np.ndarray, ...]], rows: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``fn(rows)`` for a function whose every output row depends on its own input row only:
+    from :data:`SPLIT_FROM` rows, in chunks, every other one in the worker thread."""
+    rows = np.asarray(rows)
+    if len(rows) < SPLIT_FROM or threading.current_thread().name.startswith(_NAME):
+        return fn(rows)
+    chunks = [rows[lo:lo + CHUNK_ROWS] for lo in range(0, len(rows), CHUNK_ROWS)]
+    theirs = _submit(lambda: [fn(c) for c in chunks[1::2]])
+    mine = [fn(c) for c in chunks[0::2]]
+    done = theirs.result()
+    ordered = [mine[i // 2] if i % 2 == 0 else done[i // 2] for i in range(len(chunks))]
+    return tuple(np.concatenate(parts) for parts in zip(*ordered, strict=True))
