@@ -35,7 +35,7 @@ import numpy as np
 from core.eig3 import eigh3
 from core.hashing import combine, derive, mix64
 from core.mesh import Adjacency, columns, neighbour_moments
-from core.parallel import by_rows
+from core.parallel import by_chunks, by_rows
 
 #: two sqrt-eigenvalues of the surface's second moment within this ratio are one degenerate pair
 #: (the gear: 1.011, whose axes turned 0.2-0.4 degrees under simplification; bunny 1.28: 0.03)
@@ -185,23 +185,29 @@ def _face_integrals(v: np.ndarray, f: np.ndarray
     q = [np.ascontiguousarray(v[:, j], dtype=np.float64) for j in range(3)]
     origin = np.array([float(c.mean()) for c in q])  # a provisional origin keeps the sums small
     q = [c - o for c, o in zip(q, origin, strict=True)]
-    total, first, second = 0.0, np.zeros(3), np.zeros((3, 3))
     areas = np.empty(len(f))
-    for lo in range(0, len(f), CHUNK):
-        ft = np.ascontiguousarray(f[lo:lo + CHUNK].T)
+
+    def chunk(lo: int, hi: int) -> tuple[float, np.ndarray, np.ndarray]:
+        ft = np.ascontiguousarray(f[lo:hi].T)
         c = [[np.take(q[j], ft[k]) for j in range(3)] for k in range(3)]
         ux, uy, uz = (c[1][j] - c[0][j] for j in range(3))
         wx, wy, wz = (c[2][j] - c[0][j] for j in range(3))
         cx, cy, cz = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
         area = 0.5 * np.sqrt(cx * cx + cy * cy + cz * cz)
-        areas[lo:lo + CHUNK] = area
-        total += float(area.sum())
+        areas[lo:hi] = area
         s = [c[0][j] + c[1][j] + c[2][j] for j in range(3)]
+        first, second = np.zeros(3), np.zeros((3, 3))
         for i in range(3):
             weighted = area * s[i]
-            first[i] += float(weighted.sum()) / 3.0
+            first[i] = float(weighted.sum()) / 3.0
             for j in range(i, 3):
-                second[i, j] += _dot(weighted, s[j])
+                second[i, j] = _dot(weighted, s[j])
+        return float(area.sum()), first, second
+
+    # the chunks' sums added in chunk order, whichever thread made them
+    total, first, second = 0.0, np.zeros(3), np.zeros((3, 3))
+    for t, fc, sc in by_chunks(chunk, len(f), CHUNK):
+        total, first, second = total + t, first + fc, second + sc
     around = (np.bincount(f[:, 0], areas, minlength=n) + np.bincount(f[:, 1], areas, minlength=n)
               + np.bincount(f[:, 2], areas, minlength=n))
     for i in range(3):
@@ -259,10 +265,9 @@ def angular_spectrum(vertices: np.ndarray, faces: np.ndarray, areas: np.ndarray,
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     bins = ANGLE_BINS
     scale = bins / (2.0 * np.pi)
-    hist = np.zeros(bins)
-    wide_faces, wide_n = [], []
-    for lo in range(0, len(faces), CHUNK):
-        ft = np.ascontiguousarray(faces[lo:lo + CHUNK].T)
+
+    def chunk(lo: int, hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        ft = np.ascontiguousarray(faces[lo:hi].T)
         x = [np.take(px, ft[k]) for k in range(3)]
         y = [np.take(py, ft[k]) for k in range(3)]
         # the angle each edge subtends about the axis: |a x b| / (|a| |b|) is its sine, which is the
@@ -282,22 +287,28 @@ def angular_spectrum(vertices: np.ndarray, faces: np.ndarray, areas: np.ndarray,
         n = np.clip(np.ceil(span / ANGLE_SPAN), 1, SUBDIVIDE).astype(np.int64)
         # faces narrower than the span (nearly all on a fine mesh): their area at their centroid
         single = n == 1
-        ca = areas[lo:lo + CHUNK]
-        if single.all():
+        ca = areas[lo:hi]
+        many = np.flatnonzero(~single)
+        if not many.size:
             cx, cy = (x[0] + x[1] + x[2]) / 3.0, (y[0] + y[1] + y[2]) / 3.0
         else:
             one = np.flatnonzero(single)
             cx = (x[0][one] + x[1][one] + x[2][one]) / 3.0
             cy = (y[0][one] + y[1][one] + y[2][one]) / 3.0
             ca = ca[one]
-            many = np.flatnonzero(~single)
-            wide_faces.append(many + lo)
-            wide_n.append(n[many])
         b = ((np.arctan2(cy, cx) + np.pi) * scale).astype(np.int64)
-        hist += np.bincount(np.minimum(b, bins - 1), np.sqrt(cx * cx + cy * cy) * ca, minlength=bins)
+        part = np.bincount(np.minimum(b, bins - 1), np.sqrt(cx * cx + cy * cy) * ca, minlength=bins)
+        return part, many + lo, n[many]
+
+    hist = np.zeros(bins)
+    wide_faces, wide_n = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for part, many, n_many in by_chunks(chunk, len(faces), CHUNK):  # added in chunk order
+        hist += part
+        wide_faces.append(many)
+        wide_n.append(n_many)
     # the wider faces (few: 2 % of the 1M-vertex turbine blade's, near the axis), grouped by n
-    if wide_faces:
-        wider, n = np.concatenate(wide_faces), np.concatenate(wide_n)
+    wider, n = np.concatenate(wide_faces), np.concatenate(wide_n)
+    if wider.size:
         order = np.argsort(n, kind="stable")
         by_n = wider[order]
         counts = np.bincount(n, minlength=SUBDIVIDE + 1)

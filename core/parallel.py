@@ -16,6 +16,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
+from typing import TypeVar
 
 import numpy as np
 
@@ -27,9 +28,10 @@ CHUNK_ROWS = 1 << 15
 _pool: ThreadPoolExecutor | None = None
 _lock = threading.Lock()
 _NAME = "meshmark-rows"
+T = TypeVar("T")
 
 
-def _submit(fn: Callable[[], list[tuple[np.ndarray, ...]]]) -> Future[list[tuple[np.ndarray, ...]]]:
+def _submit(fn: Callable[[], list[T]]) -> Future[list[T]]:
     global _pool
     with _lock:
         if _pool is None:
@@ -37,15 +39,26 @@ def _submit(fn: Callable[[], list[tuple[np.ndarray, ...]]]) -> Future[list[tuple
         return _pool.submit(fn)
 
 
+def by_chunks(fn: Callable[[int, int], T], total: int, size: int, split_from: int | None = None) -> list[T]:
+    """``[fn(lo, hi) for each chunk lo:hi of range(total)]``, chunks of ``size``; from
+    ``split_from`` (default :data:`SPLIT_FROM`) every other chunk in the worker thread.  The
+    results come in chunk order, so sums of them made in that order are the same bit for bit."""
+    bounds = [(lo, min(lo + size, total)) for lo in range(0, total, size)]
+    if total < (SPLIT_FROM if split_from is None else split_from) or len(bounds) < 2 \
+            or threading.current_thread().name.startswith(_NAME):
+        return [fn(lo, hi) for lo, hi in bounds]
+    theirs = _submit(lambda: [fn(lo, hi) for lo, hi in bounds[1::2]])
+    mine = [fn(lo, hi) for lo, hi in bounds[0::2]]
+    done = theirs.result()
+    return [mine[i // 2] if i % 2 == 0 else done[i // 2] for i in range(len(bounds))]
+
+
 def by_rows(fn: Callable[[np.ndarray], tuple[np.ndarray, ...]], rows: np.ndarray) -> tuple[np.ndarray, ...]:
     """``fn(rows)`` for a function whose every output row depends on its own input row only:
-    from :data:`SPLIT_FROM` rows, in chunks, every other one in the worker thread."""
+    from :data:`SPLIT_FROM` rows, in chunks of :data:`CHUNK_ROWS`, every other one in the worker
+    thread."""
     rows = np.asarray(rows)
-    if len(rows) < SPLIT_FROM or threading.current_thread().name.startswith(_NAME):
+    if len(rows) < SPLIT_FROM:
         return fn(rows)
-    chunks = [rows[lo:lo + CHUNK_ROWS] for lo in range(0, len(rows), CHUNK_ROWS)]
-    theirs = _submit(lambda: [fn(c) for c in chunks[1::2]])
-    mine = [fn(c) for c in chunks[0::2]]
-    done = theirs.result()
-    ordered = [mine[i // 2] if i % 2 == 0 else done[i // 2] for i in range(len(chunks))]
-    return tuple(np.concatenate(parts) for parts in zip(*ordered, strict=True))
+    parts = by_chunks(lambda lo, hi: fn(rows[lo:hi]), len(rows), CHUNK_ROWS)
+    return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
