@@ -76,6 +76,17 @@ class Adjacency:
         neighbour values and reducing them per row."""
         return np.asarray(self.ring_matrix @ np.asarray(values, np.uint64))
 
+    @cached_property
+    def _real_ring(self) -> sp.csr_matrix:
+        ring = self.ring_matrix
+        return sp.csr_matrix((np.ones(ring.nnz), ring.indices, ring.indptr), shape=ring.shape)
+
+    def ring_sum(self, values: np.ndarray) -> np.ndarray:
+        """Sum of ``values`` (float64) over each vertex's neighbours, added in the order of
+        :attr:`indices` (as ``np.bincount(rows, values[indices])`` adds them, bit for bit, in a
+        quarter of the time; the matrix of ones it multiplies by is made on first use)."""
+        return np.asarray(self._real_ring @ np.asarray(values, np.float64))
+
     def ring_entries(self, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Positions in ``indices`` of the neighbours of the vertices ``which``, concatenated.
 

@@ -205,10 +205,8 @@ def vertex_labels(vertices: np.ndarray, adj: Adjacency, previous: Labels | None 
 
 def neighbour_means(vertices: np.ndarray, adj: Adjacency) -> np.ndarray:
     """(n, 3) mean of each vertex's neighbours (isolated vertices: 0)."""
-    n = len(vertices)
     deg = np.maximum(adj.degree, 1)
-    cols = (np.take(np.ascontiguousarray(vertices[:, c]), adj.indices) for c in range(3))
-    return np.stack([np.bincount(adj.rows, x, minlength=n) for x in cols], 1) / deg[:, None]
+    return np.stack([adj.ring_sum(np.ascontiguousarray(vertices[:, c])) for c in range(3)], 1) / deg[:, None]
 
 
 def _fallback_cells(vertices: np.ndarray, adj: Adjacency) -> np.ndarray:

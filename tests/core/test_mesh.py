@@ -99,3 +99,15 @@ def test_rows_split_over_two_threads_give_the_same_arrays(monkeypatch) -> None:
     two = ring_boundaries(v, adj, sel)
     for a, b in zip(one, two, strict=True):
         assert np.array_equal(a, b)
+
+
+def test_ring_sum_adds_the_neighbours_in_the_order_bincount_does() -> None:
+    from tests.core.meshes import irregular_sphere
+
+    v, f = irregular_sphere(3000, 2)
+    adj = adjacency(f, len(v))
+    x = np.random.default_rng(0).normal(size=len(v)) * 10.0 ** np.random.default_rng(1).integers(-8, 8, len(v))
+    want = np.bincount(adj.rows, x[adj.indices], minlength=len(v))
+    assert np.array_equal(adj.ring_sum(x), want)
+    # a vertex of no face sums to 0
+    assert adjacency(f, len(v) + 1).ring_sum(np.append(x, 1.0))[-1] == 0.0
