@@ -31,6 +31,7 @@ from core.analysis import (
 )
 from core.geosync import Placement, follow
 from core.mesh import Adjacency, bbox_diagonal
+from core.parallel import by_rows
 from core.slots import assign_slots, ranked_by_default
 from core.sync import Labels, vertex_labels
 from core.tolerances import TOL, Tolerances
@@ -240,7 +241,18 @@ def _moves(method: str, b: Analysis, bits: np.ndarray, bad: np.ndarray, v: np.nd
     """The moves that put the carriers ``bad`` of ``b`` on the side of their ``bits`` with ``margin``;
     a move over ``cap`` (or the carrier's own limit) is cut to it and made when the carrier then
     still reads its bit with ``tol.clip_margin x margin``, else not made.  ``keyed``: carriers moved
-    outside go to their keyed sides (:func:`target_positions`) where that is within the limit."""
+    outside go to their keyed sides (:func:`target_positions`) where that is within the limit.
+    Every carrier's move is its own: many carriers are moved in two threads
+    (:func:`~core.parallel.by_rows`)."""
+    idx, new, ok, over, eff = by_rows(
+        lambda rows: _moves_of(method, b, bits, rows, v, v0, margin, cap, tol, keyed), np.flatnonzero(bad))
+    return _Moves(idx, new, ok, over, eff)
+
+
+def _moves_of(method: str, b: Analysis, bits: np.ndarray, bad: np.ndarray, v: np.ndarray, v0: np.ndarray,
+              margin: float, cap: float, tol: Tolerances, keyed: bool
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_moves` of the carriers ``bad`` (indices into ``b``)."""
     idx = b.carriers[bad]
     sub = b.subset(bad)
     want = np.where(bits[bad] == 0, 1.0, -1.0)
@@ -263,7 +275,7 @@ def _moves(method: str, b: Analysis, bits: np.ndarray, bad: np.ndarray, v: np.nd
         cut = sub.subset(over)
         zc = statistic(method, new[over], cut.mu, cut.axes, cut.lam, cut.scale, tol)
         ok[over[want[over] * zc >= tol.clip_margin * margin]] = True
-    return _Moves(idx, new, ok, move > lim, np.minimum(move, lim))
+    return idx, new, ok, move > lim, np.minimum(move, lim)
 
 
 def _touched(a: Analysis, adj: Adjacency, moved: np.ndarray) -> np.ndarray:
