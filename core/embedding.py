@@ -278,16 +278,6 @@ def _moves_of(method: str, b: Analysis, bits: np.ndarray, bad: np.ndarray, v: np
     return idx, new, ok, move > lim, np.minimum(move, lim)
 
 
-def _touched(a: Analysis, adj: Adjacency, moved: np.ndarray) -> np.ndarray:
-    """Indices into ``a`` of the carriers with a neighbour in the vertex mask ``moved``."""
-    if not a.carriers.size:
-        return np.zeros(0, np.int64)
-    _, pos = adj.ring_entries(a.carriers)
-    hit = moved[adj.indices[pos]].astype(np.int64)
-    seg = np.repeat(np.arange(len(a.carriers)), adj.degree[a.carriers])
-    return np.flatnonzero(np.bincount(seg, hit, minlength=len(a.carriers)) > 0)
-
-
 def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | bytes, codeword: np.ndarray,
                 method: str, strength: float, quantize: Quantize | None = None, tol: Tolerances = TOL,
                 prepared: list[tuple[Adjacency, Labels]] | None = None, rms_budget: float | None = None,
@@ -533,21 +523,26 @@ class _Mesh:
         again when the carriers settle (:meth:`reselect`)."""
         moved = np.zeros(len(self.v), bool)
         moved[moved_idx] = True
+        # the vertices next to a moved one (whose rings moved): only needed with both layers
+        near = None
+        if self.geo is not None:
+            near = np.zeros(len(self.v), bool)
+            near[self.adj.indices[self.adj.ring_entries(moved_idx)[1]]] = True
         if self.labels.regular:
             self.labels = vertex_labels(self.v, self.adj, self.labels)
             self.local = analyse(self.v, self.faces, self.key, self.method, adj=self.adj, labels=self.labels,
                                  tol=self.tol)
         else:
-            self._own(self.local, moved)
+            self._own(self.local, moved, near)
         if self.geo is not None:
-            self._own(self.geo, moved)
+            self._own(self.geo, moved, near)
 
-    def _own(self, a: Analysis, moved: np.ndarray) -> None:
+    def _own(self, a: Analysis, moved: np.ndarray, near: np.ndarray | None) -> None:
         """Re-read the carriers of ``a`` that moved, and the boundaries of those next to a moved
-        vertex when the other layer exists (one layer alone is an independent set)."""
+        vertex (``near``) when the other layer exists (one layer alone is an independent set)."""
         _restate(a, self.v, np.flatnonzero(moved[a.carriers]), self.method, self.tol)
-        if self.geo is not None:
-            _refresh(a, self.v, self.adj, _touched(a, self.adj, moved), self.method, self.tol)
+        if near is not None:
+            _refresh(a, self.v, self.adj, np.flatnonzero(near[a.carriers]), self.method, self.tol)
 
     def reselect(self) -> bool:
         """Choose the geometric carriers again at the current positions (the moves change which
