@@ -31,7 +31,7 @@ from core.analysis import (
 )
 from core.geosync import Placement, follow
 from core.mesh import Adjacency, bbox_diagonal
-from core.parallel import by_rows
+from core.parallel import SPLIT_FROM, beside, by_rows
 from core.slots import assign_slots, ranked_by_default
 from core.sync import Labels, vertex_labels
 from core.tolerances import TOL, Tolerances
@@ -104,6 +104,15 @@ def target_positions(method: str, a: Analysis, v: np.ndarray, bits: np.ndarray, 
 #: carrier outwards unless 0.25 / 0.5 / 1.0 of it inside 154 / 159 / 157; keyed sides at 0.5, 160;
 #: core/README.md, section 3)
 KEYED_SIDE_FROM = 0.5
+
+
+def deepest(method: str, a: Analysis, tol: Tolerances = TOL) -> np.ndarray:
+    """The largest ``-z`` (bit 1) each carrier of ``a`` can read, at its ring's mean: ``tau / s``
+    for ``planes`` (``|y0| = 0``), ``K sqrt(l1') / s`` for ``ellipsoids`` (Mahalanobis radius 0)."""
+    s = np.maximum(a.scale, 1e-300)
+    if method == "planes":
+        return np.maximum(np.sqrt(np.maximum(a.lam[:, 0], 0.0)), tol.plane_floor * s) / s
+    return tol.radius * np.sqrt(np.maximum(a.lam[:, 0], 0.0)) / s
 
 
 def _side(y0: np.ndarray, target: np.ndarray, want: np.ndarray, sides: np.ndarray | None) -> np.ndarray:
@@ -185,6 +194,12 @@ GEOMETRIC_MARGIN = 0.6
 #: still read wrong: cells whose nearest vertex flips with the moves around it never settle (on the
 #: bunny 28 carriers of 11,400 kept flipping between two states from round 5 on)
 SETTLE_AFTER, SETTLED = 3, 0.005
+#: a carrier that reads bit 1 within this share of the deepest reading its boundary allows
+#: (:func:`deepest`) is not moved again: with planes, a bit 1 on a ring flatter than the margin
+#: reads at most plane_floor = 0.07, which is half the margin the RMS budget left on the 1M-vertex
+#: turbine blade, so 114k carriers at their best were "moved" by rounding in all 12 rounds and the
+#: embedding never settled
+AT_BEST = 0.01
 
 
 @dataclass(frozen=True)
@@ -368,6 +383,7 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
     # means, which a moved carriers changes for its (non-carrier) neighbours, so a selection can
     # change under the embedding; it is checked when the moves are done, and made again if it did
     chosen = [st.prio for st in states]
+    ahead: tuple[list[int], list[tuple[int, np.ndarray, Analysis]]] | None = None
     for r in range(1, tol.verify_rounds + 1):
         slots = slots_of([a.slot_hash for a in an])
         any_bad = False
@@ -381,10 +397,21 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
         if any_bad:
             continue
         # settled: the geometric cells, then the connectivity selection, as the detector will see them
-        changed = [st.reselect() for st in states]  # every mesh, not just up to the first change
+        # (on a large mesh, once the frame has followed the moves, the connectivity check is made
+        # beside the geometric choice, which reads the same positions and changes neither the
+        # positions nor the connectivity layer; it is used at this settle or, when the geometric
+        # choice changed and the round after it moved nothing, at the next)
+        if _beside_worth(states):
+            versions = [st.version for st in states]
+            check = beside(partial(_selections, states, key, method, tol, chosen, an))
+            changed = [st.reselect() for st in states]  # every mesh, not just up to the first change
+            ahead = (versions, check.result())
+        else:
+            changed = [st.reselect() for st in states]
         if any(changed):
             continue
-        if not _reselect(states, key, method, tol, chosen, an, slots_of, codeword):
+        made = ahead[1] if ahead is not None and ahead[0] == [st.version for st in states] else None
+        if not _reselect(states, key, method, tol, chosen, an, slots_of, codeword, made):
             break
     else:
         # out of rounds: the caller verifies what the detector will see
@@ -420,6 +447,7 @@ class _Mesh:
         #: follow (:meth:`reselect`)
         self.view = self.geo
         self.dirty = False  # vertices moved since the geometric carriers were last chosen
+        self.version = 0  # rounds that moved vertices
         self.skipped = np.zeros(len(v0), bool)
         self.held = np.zeros(len(v0), bool)
         med = float(np.median(self.local.scale)) if len(self.local.scale) else 0.0
@@ -455,7 +483,10 @@ class _Mesh:
             out = []
             for b, bits, free, share in layers:
                 want = np.where(bits == 0, 1.0, -1.0)
-                bad = (want * b.z < share * limit) & ~self.skipped[b.carriers] & ~self.held[b.carriers] & free
+                # a bit 1 read within AT_BEST of the deepest its boundary allows has nowhere to go
+                deep = (want < 0) & (want * b.z >= (1.0 - AT_BEST) * deepest(self.method, b, self.tol))
+                bad = (want * b.z < share * limit) & ~deep & free
+                bad &= ~self.skipped[b.carriers] & ~self.held[b.carriers]
                 if bad.any():
                     out.append((b, bits, bad, share))
             return out
@@ -493,6 +524,7 @@ class _Mesh:
         placed = new[ok] if quantize is None else quantize(idx[ok], new[ok])
         self.v[idx[ok]] = placed
         self.dirty = True
+        self.version += 1
         self._reread(idx[ok])
         return True
 
@@ -581,26 +613,46 @@ class _Mesh:
         return new > SETTLED * max(len(now.carriers), 1)
 
 
-def _reselect(states: list[_Mesh], key: str | bytes, method: str, tol: Tolerances, chosen: list[np.ndarray],
-              an: list[Analysis], slots_of: Callable[[list[np.ndarray]], list[np.ndarray]] | None,
-              codeword: np.ndarray) -> bool:
-    """Make again, in place, the selection of every mesh whose priorities no longer order its
-    neighbours as when it was made (``chosen``).  True when more moves are needed: a selection was
-    made again and, with ``slots_of`` (the slot rule), some slot's centred hard votes no longer
-    agree with ``codeword`` (when they all do, the detector's first variant reads the codeword
-    exactly, and the handful of carriers the new selection adds or drops is absorbed: a 1M-vertex
-    mesh re-selected three times in a row before this check).  The new selection reads only the
-    carriers whose boundaries the moves changed or that it adds (:func:`~core.analysis.reanalysed`)."""
-    again = False
+def _beside_worth(states: list[_Mesh]) -> bool:
+    """Whether the settle's geometric choice is worth a connectivity check beside it: a large file
+    whose geometric layer has followed the moves' frame (the first choice after the moves makes
+    the frame again and always changes, so a check beside it would be wasted) and has moved since."""
+    geo = [st for st in states if st.geo is not None]
+    return (sum(len(st.v) for st in states) >= SPLIT_FROM and bool(geo)
+            and all(st.followed and st.dirty for st in geo))
+
+
+def _selections(states: list[_Mesh], key: str | bytes, method: str, tol: Tolerances, chosen: list[np.ndarray],
+                an: list[Analysis]) -> list[tuple[int, np.ndarray, Analysis]]:
+    """``(mesh, priorities, analysis)`` of every mesh whose priorities at the current positions no
+    longer order its neighbours as when its selection was made (``chosen``), with the selection
+    made again (:func:`~core.analysis.reanalysed`: only the carriers whose boundaries the moves
+    changed, or that it adds, are read).  Reads the states, changes nothing."""
+    out = []
     for k, st in enumerate(states):
         if st.labels.regular:
             continue  # analysed afresh after every move already
         now = priorities(st.v, st.adj, st.labels, key)
         if same_order(chosen[k], now, st.adj):
             continue
-        chosen[k] = now
         moved = np.any(st.v != st.v0, axis=1)
-        an[k] = reanalysed(an[k], st.v, st.adj, st.labels, key, method, now, moved, tol)
+        out.append((k, now, reanalysed(an[k], st.v, st.adj, st.labels, key, method, now, moved, tol)))
+    return out
+
+
+def _reselect(states: list[_Mesh], key: str | bytes, method: str, tol: Tolerances, chosen: list[np.ndarray],
+              an: list[Analysis], slots_of: Callable[[list[np.ndarray]], list[np.ndarray]] | None,
+              codeword: np.ndarray, made: list[tuple[int, np.ndarray, Analysis]] | None = None) -> bool:
+    """Make again, in place, the selection of every mesh whose priorities no longer order its
+    neighbours as when it was made (``chosen``; ``made``: :func:`_selections` at the current
+    positions, when the caller has it).  True when more moves are needed: a selection was made
+    again and, with ``slots_of`` (the slot rule), some slot's centred hard votes no longer agree
+    with ``codeword`` (when they all do, the detector's first variant reads the codeword exactly,
+    and the handful of carriers the new selection adds or drops is absorbed: a 1M-vertex mesh
+    re-selected three times in a row before this check)."""
+    again = False
+    for k, now, a in (_selections(states, key, method, tol, chosen, an) if made is None else made):
+        chosen[k], an[k] = now, a
         again = True
     if not again or slots_of is None:
         return again

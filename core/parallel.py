@@ -26,6 +26,7 @@ SPLIT_FROM = 50_000
 CHUNK_ROWS = 1 << 15
 
 _pool: ThreadPoolExecutor | None = None
+_beside: ThreadPoolExecutor | None = None
 _lock = threading.Lock()
 _NAME = "meshmark-rows"
 T = TypeVar("T")
@@ -37,6 +38,16 @@ def _submit(fn: Callable[[], list[T]]) -> Future[list[T]]:
         if _pool is None:
             _pool = ThreadPoolExecutor(1, thread_name_prefix=_NAME)
         return _pool.submit(fn)
+
+
+def beside(fn: Callable[[], T]) -> Future[T]:
+    """Run ``fn`` in a thread of its own (not the rows' worker, which ``fn`` may use) while the
+    caller goes on: for a computation independent of what the caller does meanwhile."""
+    global _beside
+    with _lock:
+        if _beside is None:
+            _beside = ThreadPoolExecutor(1, thread_name_prefix="meshmark-beside")
+        return _beside.submit(fn)
 
 
 def by_chunks(fn: Callable[[int, int], T], total: int, size: int, split_from: int | None = None) -> list[T]:

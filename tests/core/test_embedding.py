@@ -136,3 +136,41 @@ def test_keyed_sides_from_1024_connectivity_carriers(n: int, crossing: bool) -> 
     off = np.abs(y1) > 1e-9 * a.scale[keep]
     crossed = off & (np.sign(y1) != np.sign(y0)) & (y0 != 0)
     assert crossed.any() == crossing
+
+
+def test_a_bit_1_out_of_reach_is_not_moved_round_after_round() -> None:
+    # planes at margin 0.2: a bit 1 on a ring flatter than the margin reads at most plane_floor
+    # (0.07) below its boundary, under the later rounds' half margin (0.1); once there it has
+    # nowhere to go, and the embedding settles instead of "moving" it by rounding every round
+    from core.embedding import deepest
+    from core.tolerances import TOL
+
+    v, f = irregular_sphere(4000, 3)
+    cw = encode("k", None)
+    _, stats, final = embed_parts([(v, f)], "k", cw, "planes", 0.2)
+    a = final[0]
+    bits = cw[assign_slots([a.slot_hash], len(cw))[0]]
+    at_best = (bits == 1) & (-a.z >= 0.99 * deepest("planes", a)) & (-a.z < 0.1)
+    assert at_best.sum() > 50  # the case is there
+    assert stats[0].rounds < TOL.verify_rounds
+
+
+def test_the_connectivity_check_beside_the_geometric_choice_changes_nothing(monkeypatch) -> None:
+    # a large file checks its connectivity selection in a thread beside the geometric choice and
+    # uses the answer when the positions did not change since: the same file, bit for bit, as the
+    # check made after it in this thread
+    import core.embedding as emb
+    from core.pipeline import embed_mesh
+
+    v, f = irregular_sphere(30000, 2)
+    v = v * np.array([1.0, 0.7, 0.5])  # a frame of three distinct axes: a geometric layer
+    v[:, 0] += 0.2 * v[:, 1] ** 2  # (and a second choice after the follow, on this one)
+    used = []
+    beside = emb.beside
+    monkeypatch.setattr(emb, "beside", lambda fn: used.append(1) or beside(fn))
+    monkeypatch.setattr(emb, "SPLIT_FROM", 0)
+    with_check, rep = embed_mesh(v, f, "k", method="ellipsoids")
+    assert used and rep.geometric_carriers > 0
+    monkeypatch.setattr(emb, "SPLIT_FROM", 10**12)
+    without, _ = embed_mesh(v, f, "k", method="ellipsoids")
+    assert np.array_equal(with_check, without)

@@ -106,7 +106,8 @@ def test_ring_sum_adds_the_neighbours_in_the_order_bincount_does() -> None:
 
     v, f = irregular_sphere(3000, 2)
     adj = adjacency(f, len(v))
-    x = np.random.default_rng(0).normal(size=len(v)) * 10.0 ** np.random.default_rng(1).integers(-8, 8, len(v))
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=len(v)) * 10.0 ** rng.integers(-8, 8, len(v))
     want = np.bincount(adj.rows, x[adj.indices], minlength=len(v))
     assert np.array_equal(adj.ring_sum(x), want)
     # a vertex of no face sums to 0
