@@ -11,11 +11,24 @@ _M2 = np.uint64(0x94D049BB133111EB)
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 
 
+#: elements per chunk of a large array's finaliser: its eight passes then stay in the CPU's cache
+#: (1M values: 3-4 ms against 13-49 ms in whole-array passes)
+CHUNK = 1 << 14
+
+
 def finalise64(x: np.ndarray) -> np.ndarray:
     """splitmix64's finaliser, a bijective avalanche mix of uint64, applied to ``x`` in place.
 
     Returns ``x`` (a new value when ``x`` is a numpy scalar).
     """
+    if isinstance(x, np.ndarray) and x.ndim == 1 and x.size > CHUNK and x.flags.c_contiguous:
+        for lo in range(0, x.size, CHUNK):
+            _finalise(x[lo:lo + CHUNK])
+        return x
+    return _finalise(x)
+
+
+def _finalise(x: np.ndarray) -> np.ndarray:
     x ^= x >> np.uint64(30)
     x *= _M1
     x ^= x >> np.uint64(27)

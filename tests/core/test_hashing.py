@@ -52,3 +52,17 @@ def test_derivation_is_per_key_and_purpose() -> None:
     long = derive_bytes("k", "p", 200)
     assert len(long) == 200 and derive_bytes("k", "p", 10) == long[:10]
     assert derive_bytes("k", "q", 10) != long[:10]
+
+
+def test_a_large_array_is_finalised_in_chunks_as_a_whole_array_pass_does() -> None:
+    from core.hashing import CHUNK, _finalise
+
+    x = np.random.default_rng(5).integers(0, 2**63, 3 * CHUNK + 17, dtype=np.uint64)
+    whole = _finalise(x.copy())
+    chunked = finalise64(x.copy())
+    assert np.array_equal(chunked, whole)
+    assert np.array_equal(mix64(x), _finalise(x + np.uint64(0x9E3779B97F4A7C15)))
+    # not contiguous: one pass over the strided view, in place
+    y = x.copy()
+    finalise64(y[::2])
+    assert np.array_equal(y[::2], whole[::2]) and np.array_equal(y[1::2], x[1::2])
