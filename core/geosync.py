@@ -35,7 +35,7 @@ import numpy as np
 from core.eig3 import eigh3
 from core.hashing import combine, derive, mix64
 from core.mesh import Adjacency, columns, neighbour_moments
-from core.parallel import by_chunks, by_rows
+from core.parallel import CHUNK_ROWS, by_chunks, by_rows
 
 #: two sqrt-eigenvalues of the surface's second moment within this ratio are one degenerate pair
 #: (the gear: 1.011, whose axes turned 0.2-0.4 degrees under simplification; bunny 1.28: 0.03)
@@ -632,18 +632,29 @@ def geometric_carriers(vertices: np.ndarray, adj: Adjacency, frame: SurfaceFrame
         return np.zeros(0, np.int64), np.zeros(0, np.uint64)
     rng = np.random.default_rng(derive(key, f"meshmark-goff{rung}"))
     offset = rng.uniform(0.0, h, 3)
-    y = in_frame(vertices, frame.centroid, axes) / frame.rho - offset
-    cell = np.floor(y / h)
-    rest = y - (cell + 0.5) * h
-    d3 = rest[:, 0] ** 2 + rest[:, 1] ** 2 + rest[:, 2] ** 2
-    cand = np.flatnonzero((d3 < (BALL * h) ** 2) & usable(adj))
+    may = usable(adj)
+
+    def chunk(lo: int, hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        # the candidates of a chunk of vertices: their cells, offsets from the centres and squared
+        # distances (chunks of the whole mesh's passes stay in the cache, and most vertices leave)
+        y = in_frame(vertices[lo:hi], frame.centroid, axes) / frame.rho - offset
+        cell = np.floor(y / h)
+        rest = y - (cell + 0.5) * h
+        d3 = rest[:, 0] ** 2 + rest[:, 1] ** 2 + rest[:, 2] ** 2
+        near = np.flatnonzero((d3 < (BALL * h) ** 2) & may[lo:hi])
+        return near + lo, cell[near].astype(np.int64), rest[near], d3[near]
+
+    found = by_chunks(chunk, len(vertices), CHUNK_ROWS)
+    cand = np.concatenate([p[0] for p in found])
     if not cand.size:
         return np.zeros(0, np.int64), np.zeros(0, np.uint64)
-    c = cell[cand].astype(np.int64)
+    c = np.concatenate([p[1] for p in found])
+    rest = np.concatenate([p[2] for p in found])
+    d3 = np.concatenate([p[3] for p in found])
     salt = np.uint64(derive(key, "meshmark-gcell"))
     ch = combine(combine(mix64(c[:, 0].view(np.uint64) ^ salt), c[:, 1].view(np.uint64)),
                  c[:, 2].view(np.uint64))
-    order = np.lexsort((d3[cand], ch))
+    order = np.lexsort((d3, ch))
     hs = ch[order]
     start = np.ones(len(order), bool)
     start[1:] = hs[1:] != hs[:-1]
@@ -652,9 +663,9 @@ def geometric_carriers(vertices: np.ndarray, adj: Adjacency, frame: SurfaceFrame
     sub, sub_h = cand[near], ch[near]
     least = (Rings(vertices, adj) if rings is None else rings).least(sub)
     normal = in_frame(least, np.zeros(3), axes)  # least-variance axis, in the frame
-    r = rest[sub]
+    r = rest[near]
     along = (r * normal).sum(axis=1)
-    dt = d3[sub] - along * along
+    dt = d3[near] - along * along
     order = np.lexsort((dt, sub_h))
     hs = sub_h[order]
     first = np.ones(len(order), bool)
