@@ -30,7 +30,7 @@ from core.hashing import derive, mix64
 from core.mesh import Adjacency, adjacency, columns, neighbour_moments, oriented
 from core.options import METHODS
 from core.parallel import by_rows
-from core.sync import Labels, select_carriers, tie_broken, vertex_labels
+from core.sync import TIE_BITS, Labels, select_carriers, tie_broken, vertex_labels
 from core.tolerances import TOL, Tolerances
 
 
@@ -171,12 +171,24 @@ def priorities(vertices: np.ndarray, adj: Adjacency, labels: Labels, key: str | 
     return tie_broken(prio, vertices, adj) if len(vertices) >= TIE_BREAK_FROM else prio
 
 
-def same_order(before: np.ndarray, after: np.ndarray, adj: Adjacency) -> bool:
+def same_order(before: np.ndarray, after: np.ndarray, adj: Adjacency,
+               pairs: tuple[np.ndarray, np.ndarray] | None = None) -> bool:
     """Whether two priority vectors order every pair of neighbours alike (ties included), i.e.
-    give the same greedy selection (:func:`~core.sync.select_carriers` only compares neighbours)."""
-    a, b = adj.rows, adj.indices
+    give the same greedy selection (:func:`~core.sync.select_carriers` only compares neighbours).
+    ``pairs``: :func:`tied_pairs` of either, when the two differ only in their tie-break."""
+    a, b = (adj.rows, adj.indices) if pairs is None else pairs
     return bool(np.array_equal(before[a] > before[b], after[a] > after[b])
                 and np.array_equal(before[a] == before[b], after[a] == after[b]))
+
+
+def tied_pairs(prio: np.ndarray, adj: Adjacency) -> tuple[np.ndarray, np.ndarray]:
+    """The neighbours (both directions) whose priorities have the same label hash above the
+    tie-break's :data:`~core.sync.TIE_BITS`: the only pairs that two priority vectors of the same
+    labels (:func:`priorities` at other positions) can order differently, the others being
+    ordered by those bits alone."""
+    high = prio >> np.uint64(TIE_BITS)
+    t = np.flatnonzero(high[adj.rows] == high[adj.indices])
+    return adj.rows[t], adj.indices[t]
 
 
 def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, methods: Sequence[str],

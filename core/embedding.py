@@ -28,6 +28,7 @@ from core.analysis import (
     same_order,
     signed_statistic,
     statistic,
+    tied_pairs,
 )
 from core.geosync import Placement, follow
 from core.mesh import Adjacency, bbox_diagonal
@@ -448,6 +449,7 @@ class _Mesh:
         self.view = self.geo
         self.dirty = False  # vertices moved since the geometric carriers were last chosen
         self.version = 0  # rounds that moved vertices
+        self.tied: tuple[np.ndarray, np.ndarray] | None = None  # analysis.tied_pairs of the selection
         self.skipped = np.zeros(len(v0), bool)
         self.held = np.zeros(len(v0), bool)
         med = float(np.median(self.local.scale)) if len(self.local.scale) else 0.0
@@ -633,7 +635,9 @@ def _selections(states: list[_Mesh], key: str | bytes, method: str, tol: Toleran
         if st.labels.regular:
             continue  # analysed afresh after every move already
         now = priorities(st.v, st.adj, st.labels, key)
-        if same_order(chosen[k], now, st.adj):
+        if st.tied is None:  # (the label hashes do not change: once per mesh)
+            st.tied = tied_pairs(chosen[k], st.adj)
+        if same_order(chosen[k], now, st.adj, st.tied):
             continue
         moved = np.any(st.v != st.v0, axis=1)
         out.append((k, now, reanalysed(an[k], st.v, st.adj, st.labels, key, method, now, moved, tol)))

@@ -47,6 +47,7 @@ from core.geosync import (
 from core.hashing import derive
 from core.mesh import Adjacency, adjacency, bbox_diagonal
 from core.options import DEFAULT_METHOD, METHODS, Options
+from core.parallel import by_rows
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
 from core.resample import undo_subdivision
 from core.slots import assign_slots, bucketed_slots, own_copy, ranked_by_default
@@ -277,14 +278,21 @@ def _distortion(doc: MeshDocument, new: list[np.ndarray], adjs: dict[int, Adjace
         # an isolated moved vertex is nearest to itself
         haus = max(haus, float(d[moved[adj.degree[moved] == 0]].max(initial=0.0)))
         moved = moved[adj.degree[moved] > 0]
-        first, pos = adj.ring_entries(moved)
-        rows = np.repeat(moved, adj.degree[moved])
-        nb = adj.indices[pos]
-        old_r, new_r = np.take(p.vertices, rows, axis=0), np.take(v, rows, axis=0)
-        old_n, new_n = np.take(p.vertices, nb, axis=0), np.take(v, nb, axis=0)
-        # nearest among the 1-ring, per moved vertex (runs of its degree)
-        to_old = np.minimum.reduceat(_row_norms(new_r - old_n), first) if moved.size else np.zeros(0)
-        to_new = np.minimum.reduceat(_row_norms(old_r - new_n), first) if moved.size else np.zeros(0)
+
+        def nearest(part: np.ndarray, adj: Adjacency = adj, old: np.ndarray = p.vertices,
+                    v: np.ndarray = v) -> tuple[np.ndarray, np.ndarray]:
+            # nearest among the 1-ring, per moved vertex (runs of its degree)
+            if not part.size:
+                return np.zeros(0), np.zeros(0)
+            first, pos = adj.ring_entries(part)
+            rows = np.repeat(part, adj.degree[part])
+            nb = adj.indices[pos]
+            old_r, new_r = np.take(old, rows, axis=0), np.take(v, rows, axis=0)
+            old_n, new_n = np.take(old, nb, axis=0), np.take(v, nb, axis=0)
+            return (np.minimum.reduceat(_row_norms(new_r - old_n), first),
+                    np.minimum.reduceat(_row_norms(old_r - new_n), first))
+
+        to_old, to_new = by_rows(nearest, moved)
         dm = d[moved]
         haus = max(haus, float(np.minimum(to_old, dm).max(initial=0.0)),
                    float(np.minimum(to_new, dm).max(initial=0.0)))
@@ -634,8 +642,10 @@ def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str |
     with ThreadPoolExecutor(1) as pool:
         frames = pool.submit(lambda: [surface_frame(v, f) for v, f in meshes])
         adjs = [adjacency(f, len(v)) for v, f in zip(vs, faces, strict=True)]
-        # queued behind the frames on the one worker: it runs while the labels are made here
-        placed = pool.submit(lambda: _placements(meshes, adjs, key, L, frames.result()))
+        # queued behind the frames on the one worker: it runs while the labels are made here (with
+        # each vertex's face, which the connectivity layer's boundaries will orient by)
+        placed = pool.submit(lambda: ([adj.vertex_face for adj in adjs],
+                                      _placements(meshes, adjs, key, L, frames.result()))[1])
         prepared = [(adj, vertex_labels(v, adj)) for v, adj in zip(vs, adjs, strict=True)]
         return prepared, placed.result(), selections(prepared)
 

@@ -85,3 +85,27 @@ def test_reanalysed_equals_a_fresh_analysis_after_moves(method: str) -> None:
     assert not np.array_equal(got.carriers, prev.carriers)  # the selection did change
     for name in ("carriers", "slot_hash", "z", "mu", "axes", "lam", "scale", "signed"):
         assert np.array_equal(getattr(got, name), getattr(want, name)), name
+
+
+def test_tied_pairs_decide_the_order_of_priorities_that_differ_in_their_tie_break() -> None:
+    # priorities of the same labels at other positions differ only in their low TIE_BITS: only
+    # neighbours of equal label hashes can be ordered differently, whatever the low bits
+    from core.analysis import prepare, same_order, tied_pairs
+    from core.sync import TIE_BITS
+
+    v, f = irregular_sphere(3000, 4)
+    (adj, _), = prepare([v], [f])
+    rng = np.random.default_rng(2)
+    low = np.uint64((1 << TIE_BITS) - 1)
+    outcomes = set()
+    for trial in range(40):
+        high = rng.integers(0, 6, len(v)).astype(np.uint64) << np.uint64(TIE_BITS)  # many ties
+        before = high | rng.integers(0, 1 << TIE_BITS, len(v)).astype(np.uint64)
+        after = before.copy()
+        change = rng.random(len(v)) < (0.001 if trial % 2 else 0.2)
+        fresh = rng.integers(0, 1 << TIE_BITS, int(change.sum())).astype(np.uint64)
+        after[change] = high[change] | (fresh & low)
+        want = same_order(before, after, adj)
+        assert same_order(before, after, adj, tied_pairs(before, adj)) == want
+        outcomes.add(want)
+    assert outcomes == {True, False}
