@@ -32,22 +32,32 @@ _NAME = "meshmark-rows"
 T = TypeVar("T")
 
 
-def _submit(fn: Callable[[], list[T]]) -> Future[list[T]]:
-    global _pool
+def submit(pool: ThreadPoolExecutor, fn: Callable[[], T]) -> Future[T]:
+    """``pool.submit(fn)``, or ``fn`` made here and now when no thread can be started (a service
+    worker near its address-space limit: a thread's stack and malloc arena are mapped at once):
+    the result is the same either way, only later."""
+    try:
+        return pool.submit(fn)
+    except RuntimeError:  # "can't start new thread"
+        done: Future[T] = Future()
+        done.set_result(fn())
+        return done
+
+
+def _worker(name: str) -> ThreadPoolExecutor:
+    global _pool, _beside
     with _lock:
-        if _pool is None:
-            _pool = ThreadPoolExecutor(1, thread_name_prefix=_NAME)
-        return _pool.submit(fn)
+        if name == _NAME:
+            _pool = _pool or ThreadPoolExecutor(1, thread_name_prefix=_NAME)
+            return _pool
+        _beside = _beside or ThreadPoolExecutor(1, thread_name_prefix=name)
+        return _beside
 
 
 def beside(fn: Callable[[], T]) -> Future[T]:
     """Run ``fn`` in a thread of its own (not the rows' worker, which ``fn`` may use) while the
     caller goes on: for a computation independent of what the caller does meanwhile."""
-    global _beside
-    with _lock:
-        if _beside is None:
-            _beside = ThreadPoolExecutor(1, thread_name_prefix="meshmark-beside")
-        return _beside.submit(fn)
+    return submit(_worker("meshmark-beside"), fn)
 
 
 def by_chunks(fn: Callable[[int, int], T], total: int, size: int, split_from: int | None = None) -> list[T]:
@@ -58,7 +68,7 @@ def by_chunks(fn: Callable[[int, int], T], total: int, size: int, split_from: in
     if total < (SPLIT_FROM if split_from is None else split_from) or len(bounds) < 2 \
             or threading.current_thread().name.startswith(_NAME):
         return [fn(lo, hi) for lo, hi in bounds]
-    theirs = _submit(lambda: [fn(lo, hi) for lo, hi in bounds[1::2]])
+    theirs = submit(_worker(_NAME), lambda: [fn(lo, hi) for lo, hi in bounds[1::2]])
     mine = [fn(lo, hi) for lo, hi in bounds[0::2]]
     done = theirs.result()
     return [mine[i // 2] if i % 2 == 0 else done[i // 2] for i in range(len(bounds))]

@@ -47,7 +47,7 @@ from core.geosync import (
 from core.hashing import derive
 from core.mesh import Adjacency, adjacency, bbox_diagonal
 from core.options import DEFAULT_METHOD, METHODS, Options
-from core.parallel import by_rows
+from core.parallel import by_rows, submit
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
 from core.resample import undo_subdivision
 from core.slots import assign_slots, bucketed_slots, own_copy, ranked_by_default
@@ -640,12 +640,12 @@ def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str |
         prepared = prepare(vs, faces)
         return prepared, _placements(meshes, [adj for adj, _ in prepared], key, L), selections(prepared)
     with ThreadPoolExecutor(1) as pool:
-        frames = pool.submit(lambda: [surface_frame(v, f) for v, f in meshes])
+        frames = submit(pool, lambda: [surface_frame(v, f) for v, f in meshes])
         adjs = [adjacency(f, len(v)) for v, f in zip(vs, faces, strict=True)]
         # queued behind the frames on the one worker: it runs while the labels are made here (with
         # each vertex's face, which the connectivity layer's boundaries will orient by)
-        placed = pool.submit(lambda: ([adj.vertex_face for adj in adjs],
-                                      _placements(meshes, adjs, key, L, frames.result()))[1])
+        placed = submit(pool, lambda: ([adj.vertex_face for adj in adjs],
+                                       _placements(meshes, adjs, key, L, frames.result()))[1])
         prepared = [(adj, vertex_labels(v, adj)) for v, adj in zip(vs, adjs, strict=True)]
         return prepared, placed.result(), selections(prepared)
 
