@@ -14,11 +14,10 @@ from pathlib import Path
 
 import pytest
 
+from bench.common import meshes_dir as _meshes_dir  # the one setting, for bench and tests
+
 ROOT = Path(__file__).resolve().parents[1]
-MESHES_DIR = (ROOT / os.environ.get("MESHMARK_TEST_MESHES", "../shared/meshes")).resolve()
-if "MESHMARK_TEST_MESHES" not in os.environ and not MESHES_DIR.is_dir():
-    # a clone outside the workspace (CI's clean clone): the workspace's shared folder
-    MESHES_DIR = Path("/work/shared/meshes")
+MESHES_DIR = _meshes_dir()
 
 # apps and servers started with default settings (``app.main.app`` is built when it is imported,
 # before any fixture runs) keep their registry of copies in a temporary folder, not in the working

@@ -265,6 +265,7 @@ def test_attack_ab_runs_one_row_and_compares_two_runs(tmp_path) -> None:
 
     from bench import attack_ab
 
+    shared_mesh_path("fandisk.off")
     row = attack_ab.run_one("fandisk.off", "planes")
     cols = [k for k, v in row.items() if isinstance(v, dict)]
     assert len(cols) == len(attack_ab.ATTACKS) and row["rms"] <= 2e-4
