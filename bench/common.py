@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from tests.shared import meshes_dir as shared_meshes_dir
+
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = ROOT / "bench" / "results"
 KEY = "meshmark-bench-key"
@@ -93,19 +95,10 @@ def child_pids(pid: int, recursive: bool = False) -> list[int]:
     return kids + [g for k in kids for g in child_pids(k, True)] if recursive else kids
 
 
-#: where a clone outside the workspace (CI's clean clone) finds the shared meshes when no
-#: ``MESHMARK_TEST_MESHES`` says otherwise
-WORKSPACE_MESHES = Path("/work/shared/meshes")
-
-
 def meshes_dir() -> Path:
-    """Directory of the shared meshes: ``$MESHMARK_TEST_MESHES`` relative to the repository root
-    (default ``../shared/meshes``; unset, and no such folder there: :data:`WORKSPACE_MESHES`).  The
-    tests read the same setting (``tests/conftest.py``)."""
-    path = (ROOT / os.environ.get("MESHMARK_TEST_MESHES", "../shared/meshes")).resolve()
-    if "MESHMARK_TEST_MESHES" not in os.environ and not path.is_dir():
-        return WORKSPACE_MESHES
-    return path
+    """Directory of the shared meshes (:func:`tests.shared.meshes_dir`: ``$MESHMARK_TEST_MESHES``,
+    the setting the tests read)."""
+    return shared_meshes_dir()
 
 
 def mesh_path(name: str) -> Path:

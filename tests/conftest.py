@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.common import meshes_dir as _meshes_dir  # the one setting, for bench and tests
+from tests.shared import meshes_dir as _meshes_dir  # the one setting, for bench and tests
 
 ROOT = Path(__file__).resolve().parents[1]
 MESHES_DIR = _meshes_dir()
