@@ -412,6 +412,7 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
         if any(changed):
             continue
         made = ahead[1] if ahead is not None and ahead[0] == [st.version for st in states] else None
+        ahead = None  # once: the selections it would make are those this settle makes
         if not _reselect(states, key, method, tol, chosen, an, slots_of, codeword, made):
             break
     else:
@@ -629,7 +630,8 @@ def _selections(states: list[_Mesh], key: str | bytes, method: str, tol: Toleran
     """``(mesh, priorities, analysis)`` of every mesh whose priorities at the current positions no
     longer order its neighbours as when its selection was made (``chosen``), with the selection
     made again (:func:`~core.analysis.reanalysed`: only the carriers whose boundaries the moves
-    changed, or that it adds, are read).  Reads the states, changes nothing."""
+    changed, or that it adds, are read).  Reads the states; changes nothing but each mesh's
+    cached :func:`~core.analysis.tied_pairs`."""
     out = []
     for k, st in enumerate(states):
         if st.labels.regular:
