@@ -152,16 +152,31 @@ def signed_statistic(method: str, v: np.ndarray, mu: np.ndarray, axes: np.ndarra
     return _statistic(method, v, mu, axes, lam, scale, tol, sides)
 
 
+def plane_width(lam: np.ndarray, scale: np.ndarray, tol: Tolerances = TOL) -> np.ndarray:
+    """``planes``: the half-width ``tau = max(sqrt(l1), plane_floor * s)`` of each carrier's planes."""
+    return np.maximum(np.sqrt(np.maximum(lam[:, 0], 0.0)), tol.plane_floor * scale)
+
+
 def _statistic(method: str, v: np.ndarray, mu: np.ndarray, axes: np.ndarray, lam: np.ndarray,
                scale: np.ndarray, tol: Tolerances, sides: np.ndarray | None) -> np.ndarray:
     y = np.einsum("kij,ki->kj", axes, v - mu)  # coordinates in the eigenbasis
     if method == "planes":
-        tau = np.maximum(np.sqrt(np.maximum(lam[:, 0], 0.0)), tol.plane_floor * scale)
+        tau = plane_width(lam, scale, tol)
         return ((np.abs(y[:, 0]) if sides is None else sides * y[:, 0]) - tau) / scale
     rho = np.sqrt((y * y / lam).sum(axis=1))
     if sides is not None:
         rho = np.where(sides * y[:, 0] < 0, -rho, rho)
     return (rho - tol.radius) * np.sqrt(lam[:, 0]) / scale
+
+
+def slot_hashes(labels: Labels, key: str | bytes, chosen: np.ndarray) -> np.ndarray:
+    """Keyed hash of the labels of the connectivity carriers ``chosen``: their slots' hashes."""
+    return mix64(labels.labels[chosen] ^ _key_salts(key)[1])
+
+
+def _surface(lam: np.ndarray, scale: np.ndarray, tol: Tolerances) -> np.ndarray:
+    """Rings that span a surface: not a point, not a line (``l2 > min_flatness * l3``)."""
+    return (scale > 0) & (lam[:, 1] > tol.min_flatness * np.maximum(lam[:, 2], 1e-300))
 
 
 def priorities(vertices: np.ndarray, adj: Adjacency, labels: Labels, key: str | bytes) -> np.ndarray:
@@ -222,11 +237,10 @@ def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, m
         adj = adjacency(faces, len(v))
     if labels is None:
         labels = vertex_labels(v, adj)
-    salt_s = _key_salts(key)[1]
     if prio is None:
         prio = priorities(v, adj, labels, key)
     sel = select_carriers(adj, prio, labels.usable)
-    return carrier_statistics(v, adj, sel, lambda chosen: mix64(labels.labels[chosen] ^ salt_s), methods,
+    return carrier_statistics(v, adj, sel, lambda chosen: slot_hashes(labels, key, chosen), methods,
                               labels.regular, False, tol)
 
 
@@ -263,7 +277,7 @@ def carrier_statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray,
     ``tol.max_scale``) are dropped.  ``slot_hash``: one per vertex of ``sel``, or a function of the
     kept vertices."""
     mu, axes, lam, scale = ring_boundaries(v, adj, sel)
-    ok = (scale > 0) & (lam[:, 1] > tol.min_flatness * np.maximum(lam[:, 2], 1e-300))
+    ok = _surface(lam, scale, tol)
     if ok.any():
         ok &= scale <= tol.max_scale * np.median(scale[ok])
     sel, mu, axes, lam, scale = sel[ok], mu[ok], axes[ok], lam[ok], scale[ok]
@@ -305,12 +319,12 @@ def reanalysed(prev: Analysis, v: np.ndarray, adj: Adjacency, labels: Labels, ke
     scale[reuse], z[reuse], signed[reuse] = prev.scale[at], prev.z[at], prev.signed[at]
     f_mu, f_axes, f_lam, f_scale = ring_boundaries(v, adj, sel[fresh])
     ok = np.ones(k, bool)
-    ok[fresh] = (f_scale > 0) & (f_lam[:, 1] > tol.min_flatness * np.maximum(f_lam[:, 2], 1e-300))
+    ok[fresh] = _surface(f_lam, f_scale, tol)
     mu[fresh], axes[fresh], scale[fresh] = f_mu, f_axes, f_scale
     lam[fresh] = method_moments(method, f_lam, f_scale, tol)
     if ok.any():
         ok &= scale <= tol.max_scale * np.median(scale[ok])
-    hashes = mix64(labels.labels[sel] ^ _key_salts(key)[1])
+    hashes = slot_hashes(labels, key, sel)
     read = fresh[ok[fresh]]
     args = (method, v[sel[read]], mu[read], axes[read], lam[read], scale[read])
     z[read] = statistic(*args, tol)

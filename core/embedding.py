@@ -21,6 +21,7 @@ from core.analysis import (
     analyse_geometric,
     keyed_sides,
     method_moments,
+    plane_width,
     prepare,
     priorities,
     reanalysed,
@@ -77,7 +78,7 @@ def target_positions(method: str, a: Analysis, v: np.ndarray, bits: np.ndarray, 
     sides = keyed_sides(a.slot_hash) if keyed and a.signed is not None else None
     s = a.scale
     if method == "planes":
-        tau = np.maximum(np.sqrt(a.lam[:, 0]), tol.plane_floor * s)
+        tau = plane_width(a.lam, s, tol)
         target = np.maximum(tau + want * margin * s, 0.0)
         y[:, 0] = _side(y[:, 0], target, want, sides) * target
     else:
@@ -112,7 +113,7 @@ def deepest(method: str, a: Analysis, tol: Tolerances = TOL) -> np.ndarray:
     for ``planes`` (``|y0| = 0``), ``K sqrt(l1') / s`` for ``ellipsoids`` (Mahalanobis radius 0)."""
     s = np.maximum(a.scale, 1e-300)
     if method == "planes":
-        return np.maximum(np.sqrt(np.maximum(a.lam[:, 0], 0.0)), tol.plane_floor * s) / s
+        return plane_width(a.lam, s, tol) / s
     return tol.radius * np.sqrt(np.maximum(a.lam[:, 0], 0.0)) / s
 
 

@@ -182,7 +182,7 @@ def _face_integrals(v: np.ndarray, f: np.ndarray
     ``s s^T`` terms per face, in chunks of faces (temporaries of a few MB: no page faults on large
     meshes, and little memory in a worker thread's malloc arena)."""
     n = len(v)
-    q = [np.ascontiguousarray(v[:, j], dtype=np.float64) for j in range(3)]
+    q = list(columns(v))
     origin = np.array([float(c.mean()) for c in q])  # a provisional origin keeps the sums small
     q = [c - o for c, o in zip(q, origin, strict=True)]
     areas = np.empty(len(f))
@@ -258,7 +258,7 @@ def angular_spectrum(vertices: np.ndarray, faces: np.ndarray, areas: np.ndarray,
     :data:`CHUNK` (a few MB of temporaries: whole-mesh arrays of every corner made 400 MB at 1M
     vertices)."""
     v = np.asarray(vertices, np.float64)
-    q = [np.ascontiguousarray(v[:, k]) - centroid[k] for k in range(3)]
+    q = [c - centroid[k] for k, c in enumerate(columns(v))]
     px = q[0] * ex[0] + q[1] * ex[1] + q[2] * ex[2]
     py = q[0] * ey[0] + q[1] * ey[1] + q[2] * ey[2]
     del q
@@ -411,7 +411,7 @@ def surface_frame(vertices: np.ndarray, faces: np.ndarray) -> SurfaceFrame | Non
         return None
     # third moments along each axis (their signs fix the axes'), a vertex weighted by a third of
     # the area of its faces (a vertex of no face weighs nothing)
-    q = [np.ascontiguousarray(v[:, k]) - centroid[k] for k in range(3)]
+    q = [c - centroid[k] for k, c in enumerate(columns(v))]
     weight = around / 3.0
     third = np.empty(3)
     for j in range(3):
