@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from functools import partial
 
@@ -47,7 +46,7 @@ from core.geosync import (
 from core.hashing import derive
 from core.mesh import Adjacency, adjacency, bbox_diagonal
 from core.options import DEFAULT_METHOD, METHODS, Options
-from core.parallel import by_rows, submit
+from core.parallel import SPLIT_FROM, beside, by_rows
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
 from core.resample import undo_subdivision
 from core.slots import assign_slots, bucketed_slots, own_copy, ranked_by_default
@@ -621,11 +620,12 @@ def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str |
     ``method``, as :func:`~core.embedding.embed_parts` takes them: made once for every try).
 
     The geometric layer needs no labels and its frame no adjacency: for a file of
-    :data:`PARALLEL_FROM` vertices or more a second thread makes the surfaces' frames while this one
-    makes the adjacency, then chooses the geometric carriers while this one makes the labels and
-    the selection (numpy and scipy release the GIL in the large array operations of both).  The
-    frame's temporaries are a few MB (chunks of faces) and the choice's about 100 MB at 1M
-    vertices, which is all the thread's own malloc arena holds."""
+    :data:`~core.parallel.SPLIT_FROM` vertices or more a second thread
+    (:func:`~core.parallel.beside`) makes the surfaces' frames while this one makes the adjacency,
+    then chooses the geometric carriers while this one makes the labels and the selection (numpy
+    and scipy release the GIL in the large array operations of both).  The frame's temporaries are
+    a few MB (chunks of faces) and the choice's about 100 MB at 1M vertices, which is all the
+    thread's own malloc arena holds."""
     vs = [np.asarray(v, np.float64) for v, _ in meshes]
     faces = [f for _, f in meshes]
 
@@ -636,25 +636,17 @@ def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str |
             out.append((prio, analyse_methods(v, f, key, [method], adj, lab, TOL, prio)[method]))
         return out
 
-    if sum(len(v) for v in vs) < PARALLEL_FROM:  # (well above GEOMETRIC_MIN_VERTICES)
+    if sum(len(v) for v in vs) < SPLIT_FROM:  # (well above GEOMETRIC_MIN_VERTICES)
         prepared = prepare(vs, faces)
         return prepared, _placements(meshes, [adj for adj, _ in prepared], key, L), selections(prepared)
-    with ThreadPoolExecutor(1) as pool:
-        frames = submit(pool, lambda: [surface_frame(v, f) for v, f in meshes])
-        adjs = [adjacency(f, len(v)) for v, f in zip(vs, faces, strict=True)]
-        # queued behind the frames on the one worker: it runs while the labels are made here (with
-        # each vertex's face, which the connectivity layer's boundaries will orient by)
-        placed = submit(pool, lambda: ([adj.vertex_face for adj in adjs],
-                                       _placements(meshes, adjs, key, L, frames.result()))[1])
-        prepared = [(adj, vertex_labels(v, adj)) for v, adj in zip(vs, adjs, strict=True)]
-        return prepared, placed.result(), selections(prepared)
-
-
-#: files of fewer vertices are prepared in one thread (:func:`_prepared_placements`): their frame
-#: costs about 20 ms, and a second thread's stack (8 MiB of address space) is room a service
-#: worker's RLIMIT_AS would give up for nothing (tests/app give a 10k-vertex embed 48 MB above an
-#: idle worker)
-PARALLEL_FROM = 50_000
+    frames = beside(lambda: [surface_frame(v, f) for v, f in meshes])
+    adjs = [adjacency(f, len(v)) for v, f in zip(vs, faces, strict=True)]
+    # queued behind the frames on the one worker: it runs while the labels are made here (with
+    # each vertex's face, which the connectivity layer's boundaries will orient by)
+    placed = beside(lambda: ([adj.vertex_face for adj in adjs],
+                             _placements(meshes, adjs, key, L, frames.result()))[1])
+    prepared = [(adj, vertex_labels(v, adj)) for v, adj in zip(vs, adjs, strict=True)]
+    return prepared, placed.result(), selections(prepared)
 
 
 def _placements(meshes: list[tuple[np.ndarray, np.ndarray]], adjs: Sequence[Adjacency], key: str | bytes,

@@ -25,7 +25,7 @@ def test_no_thread_to_start_gives_the_same_file(monkeypatch) -> None:
     # every split on (stage one's thread, rows, chunks, the check beside the settle) against a
     # process where starting a thread fails (RLIMIT_AS reached): the same positions, bit for bit
     v, f = _mesh()
-    for module, name in ((parallel, "SPLIT_FROM"), (embedding, "SPLIT_FROM"), (pipeline, "PARALLEL_FROM")):
+    for module, name in ((parallel, "SPLIT_FROM"), (embedding, "SPLIT_FROM"), (pipeline, "SPLIT_FROM")):
         monkeypatch.setattr(module, name, 1000)
     monkeypatch.setattr(parallel, "CHUNK_ROWS", 4096)
     threaded, rep = embed_mesh(v, f, "k", method="ellipsoids")
