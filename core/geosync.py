@@ -35,7 +35,7 @@ import numpy as np
 from core.eig3 import eigh3
 from core.hashing import combine, derive, mix64
 from core.mesh import Adjacency, columns, neighbour_moments
-from core.parallel import CHUNK_ROWS, by_chunks, by_rows
+from core.parallel import CHUNK_ROWS, by_chunks, by_rows, joined
 
 #: two sqrt-eigenvalues of the surface's second moment within this ratio are one degenerate pair
 #: (the gear: 1.011, whose axes turned 0.2-0.4 degrees under simplification; bunny 1.28: 0.03)
@@ -98,8 +98,13 @@ def in_frame(points: np.ndarray, origin: np.ndarray, axes: np.ndarray) -> np.nda
     p = [np.asarray(points[:, k], np.float64) - origin[k] for k in range(3)]
     out = np.empty((len(points), 3))
     for j in range(3):
-        out[:, j] = p[0] * axes[j, 0] + p[1] * axes[j, 1] + p[2] * axes[j, 2]
+        out[:, j] = _along(p, axes[j])
     return out
+
+
+def _along(p: list[np.ndarray], axis: np.ndarray) -> np.ndarray:
+    """The coordinate along ``axis`` of the points whose (centred) coordinate columns are ``p``."""
+    return p[0] * axis[0] + p[1] * axis[1] + p[2] * axis[2]
 
 
 class Rings:
@@ -259,8 +264,7 @@ def angular_spectrum(vertices: np.ndarray, faces: np.ndarray, areas: np.ndarray,
     vertices)."""
     v = np.asarray(vertices, np.float64)
     q = [c - centroid[k] for k, c in enumerate(columns(v))]
-    px = q[0] * ex[0] + q[1] * ex[1] + q[2] * ex[2]
-    py = q[0] * ey[0] + q[1] * ey[1] + q[2] * ey[2]
+    px, py = _along(q, ex), _along(q, ey)
     del q
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     bins = ANGLE_BINS
@@ -415,7 +419,7 @@ def surface_frame(vertices: np.ndarray, faces: np.ndarray) -> SurfaceFrame | Non
     weight = around / 3.0
     third = np.empty(3)
     for j in range(3):
-        y = q[0] * vec[j, 0] + q[1] * vec[j, 1] + q[2] * vec[j, 2]
+        y = _along(q, vec[j])
         third[j] = _dot(weight, y * y * y) / total
     del q
     # a flat surface has no spread along its normal: no skew there (1e-300 ** 1.5 is 0: 0 / 0)
@@ -644,13 +648,9 @@ def geometric_carriers(vertices: np.ndarray, adj: Adjacency, frame: SurfaceFrame
         near = np.flatnonzero((d3 < (BALL * h) ** 2) & may[lo:hi])
         return near + lo, cell[near].astype(np.int64), rest[near], d3[near]
 
-    found = by_chunks(chunk, len(vertices), CHUNK_ROWS)
-    cand = np.concatenate([p[0] for p in found])
+    cand, c, rest, d3 = joined(by_chunks(chunk, len(vertices), CHUNK_ROWS))
     if not cand.size:
         return np.zeros(0, np.int64), np.zeros(0, np.uint64)
-    c = np.concatenate([p[1] for p in found])
-    rest = np.concatenate([p[2] for p in found])
-    d3 = np.concatenate([p[3] for p in found])
     salt = np.uint64(derive(key, "meshmark-gcell"))
     ch = combine(combine(mix64(c[:, 0].view(np.uint64) ^ salt), c[:, 1].view(np.uint64)),
                  c[:, 2].view(np.uint64))

@@ -81,5 +81,9 @@ def by_rows(fn: Callable[[np.ndarray], tuple[np.ndarray, ...]], rows: np.ndarray
     rows = np.asarray(rows)
     if len(rows) < SPLIT_FROM:
         return fn(rows)
-    parts = by_chunks(lambda lo, hi: fn(rows[lo:hi]), len(rows), CHUNK_ROWS)
+    return joined(by_chunks(lambda lo, hi: fn(rows[lo:hi]), len(rows), CHUNK_ROWS))
+
+
+def joined(parts: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
+    """Chunks' tuples of arrays joined into one tuple of arrays, in chunk order."""
     return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
