@@ -78,3 +78,28 @@ def test_a_selection_that_swaps_carriers_is_embedded_again_with_its_own_ranking(
     assert codeword_length(len(payload)) == 452
     marked = embed_file(data, "key-9", filename="spot.obj", payload=payload, method="planes")
     assert detect_file(marked.data, "key-9", filename="spot.obj", method="planes").payload == payload
+
+
+def test_capacity_tries_every_payload_of_a_few_bits() -> None:
+    """Up to 3 bits capacity embeds every payload of every length up to the one it offers (14 at
+    3 bits); above, CAPACITY_TRIALS random ones."""
+    rng = np.random.default_rng(0)
+    assert sorted(pipeline._trial_payloads(rng, 2)) == ["0", "00", "01", "1", "10", "11"]
+    three = pipeline._trial_payloads(rng, 3)
+    assert len(set(three)) == 14 and {len(p) for p in three} == {1, 2, 3}
+    four = pipeline._trial_payloads(rng, 4)
+    assert len(four) == pipeline.CAPACITY_TRIALS and {len(p) for p in four} == {4}
+
+
+def test_every_payload_of_the_few_bits_capacity_offers_embeds() -> None:
+    """The Sink with ellipsoids, key-36: capacity offered 2 bits after 8 random trials and 2 of the
+    4 two-bit payloads were refused (bench capacity-keys); every payload of every length it offers
+    up to 3 bits now embeds and reads back."""
+    name, method, key = "sink.3ds", "ellipsoids", "key-36"
+    data = shared_mesh_path(name).read_bytes()
+    top = capacity(data, Options(key=key, method=method), filename=name).max_payload_bits
+    for n in range(1, min(top, 3) + 1):
+        for i in range(2**n):
+            payload = format(i, f"0{n}b")
+            marked = embed_file(data, key, filename=name, payload=payload, method=method)
+            assert detect_file(marked.data, key, filename=name, method=method).payload == payload
