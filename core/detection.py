@@ -172,24 +172,15 @@ def agreement(analyses: list[Analysis], lengths: list[int]) -> float:
     was."""
     if not analyses:
         return 0.0
-    h = np.concatenate([a.slot_hash for a in analyses])
+    h = np.concatenate([a.slot_hash for a in analyses]).astype(np.uint64)
     if len(h) < 2:
         return 0.0
     votes = np.concatenate(_soft_values(analyses, ADAPTIVE))
     votes = votes - votes.mean()
-    var = float((votes * votes).mean())
-    if var <= 0:
-        return 0.0
     best = 0.0
     for L in sorted(set(lengths)):
-        slots = (h % np.uint64(L)).astype(np.int64)
-        n = np.bincount(slots, minlength=L).astype(np.float64)
-        pairs = float((n * (n - 1)).sum())
-        if pairs < MIN_PAIRS:
-            continue
-        sums = np.bincount(slots, votes, minlength=L)
-        sq = np.bincount(slots, votes * votes, minlength=L)
-        best = max(best, float((sums * sums - sq).sum()) / (var * np.sqrt(2.0 * pairs)))
+        z = _within_slots(h % np.uint64(L), votes, L)
+        best = best if z is None else max(best, z)
     return best
 
 
@@ -224,15 +215,23 @@ def _agreement_z(slots: np.ndarray, raw: np.ndarray, reps: np.ndarray | None) ->
     if reps is None:
         return float("inf")
     s, v = slots[reps], raw[reps]
-    L = int(s.max()) + 1 if len(s) else 1
-    n = np.bincount(s, minlength=L).astype(np.float64)
+    z = _within_slots(s, v, int(s.max()) + 1 if len(s) else 1)
+    return float("inf") if z is None else z
+
+
+def _within_slots(slots: np.ndarray, v: np.ndarray, L: int) -> float | None:
+    """``sum_j (S_j^2 - sum v^2) / (mean v^2 sqrt(2 sum_j n_j (n_j - 1)))`` of the votes ``v`` in
+    ``slots`` (of ``L``): their agreement within slots in standard deviations of random votes'
+    (None when fewer than :data:`MIN_PAIRS` pairs share a slot)."""
+    slots = slots.astype(np.int64)
+    n = np.bincount(slots, minlength=L).astype(np.float64)
     pairs = float((n * (n - 1)).sum())
     if pairs < MIN_PAIRS:
-        return float("inf")
+        return None
     var = float((v * v).sum()) / len(v)
     if var <= 0:
         return 0.0
-    sums = np.bincount(s, v, minlength=L)
+    sums = np.bincount(slots, v, minlength=L)
     return float((sums * sums).sum() - (v * v).sum()) / (var * np.sqrt(2.0 * pairs))
 
 
