@@ -451,10 +451,7 @@ class _Mesh:
         self.view = self.geo
         self.dirty = False  # vertices moved since the geometric carriers were last chosen
         self.version = 0  # rounds that moved vertices
-        #: analysis.tied_pairs of the selection's priorities, what a settle's connectivity check
-        #: (_selections) compares: made here, not at the settle, where it runs beside the geometric
-        #: choice and took 0.34 s of the check's 0.73 s at 1M vertices (0.05-0.1 s alone)
-        self.tied = None if labels.regular else tied_pairs(self.prio, adj)
+        self.tied: tuple[np.ndarray, np.ndarray] | None = None  # analysis.tied_pairs of the selection
         self.skipped = np.zeros(len(v0), bool)
         self.held = np.zeros(len(v0), bool)
         med = float(np.median(self.local.scale)) if len(self.local.scale) else 0.0
@@ -634,13 +631,15 @@ def _selections(states: list[_Mesh], key: str | bytes, method: str, tol: Toleran
     """``(mesh, priorities, analysis)`` of every mesh whose priorities at the current positions no
     longer order its neighbours as when its selection was made (``chosen``), with the selection
     made again (:func:`~core.analysis.reanalysed`: only the carriers whose boundaries the moves
-    changed, or that it adds, are read).  Reads the states and changes nothing."""
+    changed, or that it adds, are read).  Reads the states; changes nothing but each mesh's
+    cached :func:`~core.analysis.tied_pairs`."""
     out = []
     for k, st in enumerate(states):
         if st.labels.regular:
             continue  # analysed afresh after every move already
         now = priorities(st.v, st.adj, st.labels, key)
-        assert st.tied is not None  # (the label hashes do not change: those of the first selection)
+        if st.tied is None:  # (the label hashes do not change: once per mesh)
+            st.tied = tied_pairs(chosen[k], st.adj)
         if same_order(chosen[k], now, st.adj, st.tied):
             continue
         moved = np.any(st.v != st.v0, axis=1)
