@@ -172,14 +172,14 @@ def agreement(analyses: list[Analysis], lengths: list[int]) -> float:
     was."""
     if not analyses:
         return 0.0
-    h = np.concatenate([a.slot_hash for a in analyses]).astype(np.uint64)
+    h = np.concatenate([a.slot_hash for a in analyses])
     if len(h) < 2:
         return 0.0
     votes = np.concatenate(_soft_values(analyses, ADAPTIVE))
     votes = votes - votes.mean()
     best = 0.0
     for L in sorted(set(lengths)):
-        z = _within_slots(h % np.uint64(L), votes, L)
+        z = _within_slots((h % np.uint64(L)).astype(np.int64), votes, L)
         best = best if z is None else max(best, z)
     return best
 
@@ -221,9 +221,8 @@ def _agreement_z(slots: np.ndarray, raw: np.ndarray, reps: np.ndarray | None) ->
 
 def _within_slots(slots: np.ndarray, v: np.ndarray, L: int) -> float | None:
     """``sum_j (S_j^2 - sum v^2) / (mean v^2 sqrt(2 sum_j n_j (n_j - 1)))`` of the votes ``v`` in
-    ``slots`` (of ``L``): their agreement within slots in standard deviations of random votes'
-    (None when fewer than :data:`MIN_PAIRS` pairs share a slot)."""
-    slots = slots.astype(np.int64)
+    ``slots`` (int64, of ``L``): their agreement within slots in standard deviations of random
+    votes' (None when fewer than :data:`MIN_PAIRS` pairs share a slot)."""
     n = np.bincount(slots, minlength=L).astype(np.float64)
     pairs = float((n * (n - 1)).sum())
     if pairs < MIN_PAIRS:
