@@ -9,6 +9,7 @@ the carrier itself, and carriers are never adjacent, so moving one changes no ca
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass
 from functools import partial
 
@@ -451,7 +452,13 @@ class _Mesh:
         self.view = self.geo
         self.dirty = False  # vertices moved since the geometric carriers were last chosen
         self.version = 0  # rounds that moved vertices
-        self.tied: tuple[np.ndarray, np.ndarray] | None = None  # analysis.tied_pairs of the selection
+        #: :func:`~core.analysis.tied_pairs` of the selection (the label hashes do not change: once
+        #: per mesh), which the settle's connectivity check needs: on a large mesh whose check runs
+        #: beside the geometric choice, made beside the first round, which leaves the other core idle
+        #: for part of its time, instead of on the settle's longest path (:meth:`tied`)
+        self._tied: Future[tuple[np.ndarray, np.ndarray]] | tuple[np.ndarray, np.ndarray] | None = None
+        if placement is not None and not labels.regular and len(v0) >= SPLIT_FROM:
+            self._tied = beside(partial(tied_pairs, self.prio, adj))
         self.skipped = np.zeros(len(v0), bool)
         self.held = np.zeros(len(v0), bool)
         med = float(np.median(self.local.scale)) if len(self.local.scale) else 0.0
@@ -460,6 +467,14 @@ class _Mesh:
         self.strength = strength
         self.margin = strength  # smaller when the RMS budget asks for it
         self.keyed = True  # carriers moved outside go to their keyed sides (set by embed_parts)
+
+    def tied(self) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`~core.analysis.tied_pairs` of the priorities the selection was first made with."""
+        if self._tied is None:
+            self._tied = tied_pairs(self.prio, self.adj)
+        elif isinstance(self._tied, Future):
+            self._tied = self._tied.result()
+        return self._tied
 
     def _geometric(self, chosen: tuple[np.ndarray, np.ndarray] | None = None) -> Analysis | None:
         """The geometric carriers at the current positions (``chosen``: the placement's own, when
@@ -501,8 +516,9 @@ class _Mesh:
                     for b, bits, bad, share in todo]
 
         todo = needing(self.margin if r == 1 else 0.5 * self.margin)
+        moves: list[_Moves] | None = None
         if r == 1 and rms_budget is not None:
-            self.margin = self._margin_within(lambda m: at(m, needing(m)), rms_budget)
+            self.margin, moves = self._margin_within(lambda m: at(m, needing(m)), rms_budget)
             todo = needing(self.margin)
         if not todo:
             return False
@@ -511,7 +527,8 @@ class _Mesh:
             # the geometric choice of a few cells flips between two vertices with every move of
             # their neighbours: what is left is too little to matter (the caller verifies)
             return False
-        moves = at(self.margin, todo)
+        if moves is None:
+            moves = at(self.margin, todo)
         if r == 1 and rms_budget is not None:
             # what still does not fit leaves out the largest moves (the code absorbs them)
             room = (rms_budget * self.diag) ** 2 * len(self.v)
@@ -532,24 +549,33 @@ class _Mesh:
         self._reread(idx[ok])
         return True
 
-    def _margin_within(self, at: Callable[[float], list[_Moves]], budget: float) -> float:
+    def _margin_within(self, at: Callable[[float], list[_Moves]], budget: float
+                       ) -> tuple[float, list[_Moves]]:
         """The first round's margin, one for every carrier of the mesh: the largest that keeps the
         RMS budget, between MIN_MARGIN and MAX_MARGIN x strength (found by MARGIN_STEPS halvings of
         the interval: a mesh whose marks cost less than the budget at the strength gets stronger
-        ones, up to the budget, and one whose marks cost more gets weaker ones)."""
+        ones, up to the budget, and one whose marks cost more gets weaker ones), and the moves
+        ``at`` it (the moves of every margin tried are evaluated anyway: the one returned is not
+        evaluated again, a whole pass over the carriers of a large mesh)."""
         room = (budget * self.diag) ** 2 * len(self.v)
+        last: list[tuple[float, list[_Moves]]] = []  # the moves of the latest margin that fits
 
         def fits(m: float) -> bool:
-            return sum(float((mv.eff[mv.ok] ** 2).sum()) for mv in at(m)) <= room
+            moves = at(m)
+            ok = sum(float((mv.eff[mv.ok] ** 2).sum()) for mv in moves) <= room
+            if ok:
+                last[:] = [(m, moves)]
+            return ok
 
         s = self.strength
         lo, hi = (s, MAX_MARGIN * s) if fits(s) else (MIN_MARGIN * s, s)
         if lo == s and fits(hi):
-            return hi
-        for _ in range(MARGIN_STEPS):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if fits(mid) else (lo, mid)
-        return lo
+            lo = hi
+        else:
+            for _ in range(MARGIN_STEPS):
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if fits(mid) else (lo, mid)
+        return lo, last[0][1] if last and last[0][0] == lo else at(lo)
 
     def _reread(self, moved_idx: np.ndarray) -> None:
         """Statistics after the vertices ``moved_idx`` moved: the whole analysis of a regular mesh
@@ -638,9 +664,7 @@ def _selections(states: list[_Mesh], key: str | bytes, method: str, tol: Toleran
         if st.labels.regular:
             continue  # analysed afresh after every move already
         now = priorities(st.v, st.adj, st.labels, key)
-        if st.tied is None:  # (the label hashes do not change: once per mesh)
-            st.tied = tied_pairs(chosen[k], st.adj)
-        if same_order(chosen[k], now, st.adj, st.tied):
+        if same_order(chosen[k], now, st.adj, st.tied()):
             continue
         moved = np.any(st.v != st.v0, axis=1)
         out.append((k, now, reanalysed(an[k], st.v, st.adj, st.labels, key, method, now, moved, tol)))
