@@ -44,6 +44,8 @@ from core.tolerances import TOL, Tolerances
 Quantize = Callable[[int, np.ndarray, np.ndarray], np.ndarray]
 #: ``slot_rule(slot_hashes, length)``: the codeword slot of every carrier of every part
 SlotRule = Callable[[list[np.ndarray], int], list[np.ndarray]]
+#: pairs of neighbours, (rows, columns) (:func:`~core.analysis.tied_pairs`)
+Pairs = tuple[np.ndarray, np.ndarray]
 
 
 def target_positions(method: str, a: Analysis, v: np.ndarray, bits: np.ndarray, margin: float,
@@ -241,6 +243,21 @@ def _restate(a: Analysis, v: np.ndarray, which: np.ndarray, method: str, tol: To
         a.signed[which] = signed_statistic(*args, keyed_sides(a.slot_hash[which]), tol)
 
 
+@dataclass(frozen=True)
+class Selection:
+    """Where the embedding of one mesh starts from, when the caller made it (once for every try,
+    at the original positions and with tolerances of which :func:`~core.pipeline._capped` changes
+    nothing these read): the connectivity layer's selection priorities under the key and its
+    analysis with the method; the tied pairs of those priorities (:func:`~core.analysis.tied_pairs`)
+    and the geometric layer's analysis at the carriers of the placement the caller passes with it,
+    either of them when it is being made in another thread."""
+
+    prio: np.ndarray
+    analysis: Analysis
+    tied: Future[Pairs] | None = None
+    geometric: Future[Analysis | None] | None = None
+
+
 @dataclass
 class _Moves:
     """Where the carriers of one layer that read wrong would go: their vertices ``idx``, new
@@ -301,7 +318,7 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
                 prepared: list[tuple[Adjacency, Labels]] | None = None, rms_budget: float | None = None,
                 diagonal: float | None = None, slot_rule: SlotRule | None = None,
                 placements: Sequence[Placement | None] | None = None,
-                selections: Sequence[tuple[np.ndarray, Analysis]] | None = None
+                selections: Sequence[Selection] | None = None
                 ) -> tuple[list[np.ndarray], list[EmbedStats], list[Analysis]]:
     """Move carriers of one or several meshes so that the detector reads ``codeword``.
 
@@ -337,10 +354,11 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
         Per mesh, where its geometric carriers are (:mod:`core.geosync`); they carry the same
         codeword with hashed slots (``cell hash mod L``).  A vertex that is a carrier of both
         layers reads the geometric layer's bit.
-    selections : sequence of (priorities, Analysis), optional
+    selections : sequence of Selection, optional
         Per mesh, the selection priorities under ``key`` and the connectivity layer's analysis
         (``method``) at the original positions, when the caller made them (they depend on ``tol``
-        only through what :func:`~core.pipeline._capped` leaves alone).
+        only through what :func:`~core.pipeline._capped` leaves alone), with what else of the
+        start it made.
 
     Returns
     -------
@@ -433,19 +451,22 @@ class _Mesh:
 
     def __init__(self, v0: np.ndarray, faces: np.ndarray, adj: Adjacency, labels: Labels, key: str | bytes,
                  method: str, tol: Tolerances, placement: Placement | None, diagonal: float,
-                 strength: float, selection: tuple[np.ndarray, Analysis] | None = None) -> None:
+                 strength: float, selection: Selection | None = None) -> None:
         self.v0, self.v, self.faces, self.adj, self.labels = v0, v0.copy(), faces, adj, labels
         self.key, self.method, self.tol, self.placement, self.diag = key, method, tol, placement, diagonal
         if selection is None:
             prio = priorities(v0, adj, labels, key)
-            selection = prio, analyse(v0, faces, key, method, adj=adj, labels=labels, tol=tol, prio=prio)
+            selection = Selection(prio, analyse(v0, faces, key, method, adj=adj, labels=labels, tol=tol,
+                                                prio=prio))
         #: the selection priorities the connectivity layer was chosen with (:func:`_reselect`)
-        self.prio = selection[0]
-        self.local = selection[1].copy()
+        self.prio = selection.prio
+        self.local = selection.analysis.copy()
         self.local0 = self.local.carriers
         self.followed = False  # the placement's frame was made again at the moved positions
         # the embedder's placement comes with its carriers at the original positions
-        self.geo = self._geometric(None if placement is None else placement.chosen)
+        made = None if selection.geometric is None or placement is None else selection.geometric.result()
+        self.geo = made.copy() if made is not None else \
+            self._geometric(None if placement is None else placement.chosen)
         #: the detector's view of the geometric layer when it was last chosen; ``geo``, which the
         #: rounds move, also holds the carriers that lost their cell to a neighbour after the
         #: follow (:meth:`reselect`)
@@ -454,10 +475,11 @@ class _Mesh:
         self.version = 0  # rounds that moved vertices
         #: :func:`~core.analysis.tied_pairs` of the selection (the label hashes do not change: once
         #: per mesh), which the settle's connectivity check needs: on a large mesh whose check runs
-        #: beside the geometric choice, made beside the first round, which leaves the other core idle
-        #: for part of its time, instead of on the settle's longest path (:meth:`tied`)
-        self._tied: Future[tuple[np.ndarray, np.ndarray]] | tuple[np.ndarray, np.ndarray] | None = None
-        if placement is not None and not labels.regular and len(v0) >= SPLIT_FROM:
+        #: beside the geometric choice, made in another thread while the other core has less to do
+        #: (beside the connectivity layer's analysis when the caller made it, else beside the first
+        #: round), instead of on the settle's longest path (:meth:`tied`)
+        self._tied: Future[Pairs] | Pairs | None = selection.tied
+        if self._tied is None and placement is not None and not labels.regular and len(v0) >= SPLIT_FROM:
             self._tied = beside(partial(tied_pairs, self.prio, adj))
         self.skipped = np.zeros(len(v0), bool)
         self.held = np.zeros(len(v0), bool)
@@ -468,7 +490,7 @@ class _Mesh:
         self.margin = strength  # smaller when the RMS budget asks for it
         self.keyed = True  # carriers moved outside go to their keyed sides (set by embed_parts)
 
-    def tied(self) -> tuple[np.ndarray, np.ndarray]:
+    def tied(self) -> Pairs:
         """:func:`~core.analysis.tied_pairs` of the priorities the selection was first made with."""
         if self._tied is None:
             self._tied = tied_pairs(self.prio, self.adj)

@@ -3,13 +3,22 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from dataclasses import replace
 from functools import partial
 
 import numpy as np
 
 from core import capacity_model, gf2
-from core.analysis import TIE_BREAK_FROM, Analysis, analyse_geometric, analyse_methods, prepare, priorities
+from core.analysis import (
+    TIE_BREAK_FROM,
+    Analysis,
+    analyse_geometric,
+    analyse_methods,
+    prepare,
+    priorities,
+    tied_pairs,
+)
 from core.coding import (
     COMPACT_BELOW,
     COMPACT_BITS,
@@ -31,7 +40,7 @@ from core.detection import (
     detect_analyses,
     detect_views,
 )
-from core.embedding import EmbedStats, Quantize, SlotRule, embed_parts
+from core.embedding import EmbedStats, Quantize, Selection, SlotRule, embed_parts
 from core.errors import CapacityError, DegenerateMeshError, PayloadError
 from core.formats import DEFAULT_LIMITS, FORMATS, Limits, MeshDocument, MeshPart, read_mesh, weld
 from core.geosync import (
@@ -478,6 +487,10 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
 
     refusal: tuple[str, int] | None = None
     too_few = False  # too few carriers for the codeword: no embedding was tried, nothing else is
+    adjs = {i: prepared[k][0] for k, i in enumerate(parts)}
+    # the distortion report of a large file's embedding is made beside its verification (wasted
+    # when the verification fails: the next try then has the other core to itself anyway)
+    measured: Future[tuple[int, float, float, float]] | None = None
     tables: list[np.ndarray] = []  # the rankings _AS_FINAL tried
     final: list[Analysis] = []
     for attempt, (budget, factor, dec, with_geo, how) in enumerate(tries):
@@ -515,6 +528,8 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
                        + (_no_carrier_hint(carriers) or _more_carriers_hint(bits)), carriers)
             break
         verify = _scaled(report, attempt_start(attempt), attempt_start(attempt + 1))
+        if sum(len(v) for v in vs) >= SPLIT_FROM:
+            measured = beside(partial(_distortion, doc, new, adjs))
         if _verified(final, key, method, bits, L, verify):
             if how is not None and reslotted is not None:
                 reslotted.append(True)
@@ -545,7 +560,8 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
         new, L = _with_parts(doc, parts, vs), COMPACT_BITS
         carriers = sum(st.carriers for st in stats)
         skipped = sum(st.skipped for st in stats)
-    moved, rms, mx, haus = _distortion(doc, new, {i: prepared[k][0] for k, i in enumerate(parts)})
+        measured = None
+    moved, rms, mx, haus = _distortion(doc, new, adjs) if measured is None else measured.result()
     geo = [st.geometric for st in stats if st.geometric is not None and len(st.geometric.carriers)]
     layers = [CONNECTIVITY] + ([GEOMETRY] if geo and _reads_back(
         detect_views([(GEOMETRY, {method: geo})], key, bits), bits) else [])
@@ -613,8 +629,7 @@ GEOMETRIC_MIN_VERTICES = int(np.ceil(8 * codeword_length(1) / CARRIER_SHARE))
 
 
 def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str | bytes, L: int, method: str
-                         ) -> tuple[list[tuple[Adjacency, Labels]], list[Placement | None],
-                                    list[tuple[np.ndarray, Analysis]]]:
+                         ) -> tuple[list[tuple[Adjacency, Labels]], list[Placement | None], list[Selection]]:
     """:func:`~core.analysis.prepare` of every mesh, where its geometric carriers are
     (:func:`_placements`), and its connectivity layer's selection (priorities and analysis with
     ``method``, as :func:`~core.embedding.embed_parts` takes them: made once for every try).
@@ -622,31 +637,46 @@ def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str |
     The geometric layer needs no labels and its frame no adjacency: for a file of
     :data:`~core.parallel.SPLIT_FROM` vertices or more a second thread
     (:func:`~core.parallel.beside`) makes the surfaces' frames while this one makes the adjacency,
-    then chooses the geometric carriers while this one makes the labels and the selection (numpy
-    and scipy release the GIL in the large array operations of both).  The frame's temporaries are
-    a few MB (chunks of faces) and the choice's about 100 MB at 1M vertices, which is all the
-    thread's own malloc arena holds."""
+    then chooses the geometric carriers and reads them while this one makes the labels and the
+    selection, and the selection's tied pairs while this one reads the connectivity carriers
+    (numpy and scipy release the GIL in the large array operations of all of these).  The
+    frame's temporaries are a few MB (chunks of faces) and the choice's about 100 MB at 1M
+    vertices, which is all the thread's own malloc arena holds."""
     vs = [np.asarray(v, np.float64) for v, _ in meshes]
     faces = [f for _, f in meshes]
+    split = sum(len(v) for v in vs) >= SPLIT_FROM  # (well above GEOMETRIC_MIN_VERTICES)
 
-    def selections(prepared: list[tuple[Adjacency, Labels]]) -> list[tuple[np.ndarray, Analysis]]:
+    def selections(prepared: list[tuple[Adjacency, Labels]],
+                   geometric: Sequence[Future[Analysis | None] | None]) -> list[Selection]:
         out = []
-        for v, f, (adj, lab) in zip(vs, faces, prepared, strict=True):
+        for v, f, (adj, lab), geo in zip(vs, faces, prepared, geometric, strict=True):
             prio = priorities(v, adj, lab, key)
-            out.append((prio, analyse_methods(v, f, key, [method], adj, lab, TOL, prio)[method]))
+            tied = beside(partial(tied_pairs, prio, adj)) if split and not lab.regular else None
+            out.append(Selection(prio, analyse_methods(v, f, key, [method], adj, lab, TOL, prio)[method],
+                                 tied, geo))
         return out
 
-    if sum(len(v) for v in vs) < SPLIT_FROM:  # (well above GEOMETRIC_MIN_VERTICES)
+    if not split:
         prepared = prepare(vs, faces)
-        return prepared, _placements(meshes, [adj for adj, _ in prepared], key, L), selections(prepared)
+        return (prepared, _placements(meshes, [adj for adj, _ in prepared], key, L),
+                selections(prepared, [None] * len(meshes)))
     frames = beside(lambda: [surface_frame(v, f) for v, f in meshes])
     adjs = [adjacency(f, len(v)) for v, f in zip(vs, faces, strict=True)]
     # queued behind the frames on the one worker: it runs while the labels are made here (with
     # each vertex's face, which the connectivity layer's boundaries will orient by)
     placed = beside(lambda: ([adj.vertex_face for adj in adjs],
                              _placements(meshes, adjs, key, L, frames.result()))[1])
+
+    def read(k: int) -> Analysis | None:
+        p = placed.result()[k]
+        return None if p is None else \
+            analyse_geometric(vs[k], adjs[k], key, [method], p, TOL, p.chosen)[method]
+
+    # each placement's carriers read at the original positions, queued behind the placements
+    geometric = [beside(partial(read, k)) for k in range(len(meshes))]
     prepared = [(adj, vertex_labels(v, adj)) for v, adj in zip(vs, adjs, strict=True)]
-    return prepared, placed.result(), selections(prepared)
+    chosen = selections(prepared, geometric)
+    return prepared, placed.result(), chosen
 
 
 def _placements(meshes: list[tuple[np.ndarray, np.ndarray]], adjs: Sequence[Adjacency], key: str | bytes,

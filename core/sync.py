@@ -238,13 +238,9 @@ def select_carriers(adj: Adjacency, priority: np.ndarray, usable: np.ndarray) ->
     # for its neighbours: it never blocks one (a priority of exactly 0 never wins either)
     live = np.where(alive, priority, np.uint64(0))
     todo = np.flatnonzero(alive)
-    nonempty = adj.degree > 0
     while todo.size:
         if 2 * todo.size > n:  # most of the mesh: straight from the CSR
-            full = np.zeros(n, np.uint64)
-            if adj.indices.size:
-                full[nonempty] = np.maximum.reduceat(live[adj.indices], adj.indptr[:-1][nonempty])
-            nbmax = full[todo]
+            nbmax = adj.ring_max(live)[todo]
         else:
             first, pos = adj.ring_entries(todo)
             has = adj.degree[todo] > 0
