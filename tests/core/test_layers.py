@@ -10,10 +10,11 @@ import meshoptimizer
 import numpy as np
 import pytest
 
+from core import pipeline
 from core.analysis import analyse_geometric
 from core.api import detect_mesh, embed_mesh
 from core.coding import encode
-from core.embedding import _Mesh, embed_parts
+from core.embedding import Selection, _Mesh, embed_parts
 from core.geosync import rung_size
 from core.pipeline import _prepared_placements
 from core.tolerances import TOL
@@ -90,23 +91,32 @@ def test_a_crop_reads_with_the_connectivity_layer(marked) -> None:
     assert res.detected and res.payload == PAYLOAD and res.layer == "connectivity"
 
 
-def test_the_selections_made_beside_the_frame_change_nothing() -> None:
+@pytest.mark.parametrize("split", [False, True])
+def test_the_selections_made_beside_the_frame_change_nothing(split: bool, monkeypatch) -> None:
     """embed_parts with the connectivity selection that _prepared_placements made (in parallel with
-    the geometric layer's frame) moves exactly what it moves without it, however often it is
-    reused (the budget's retries reuse it: the embedder must not change it in place)."""
+    the geometric layer's frame, and on a large file the geometric carriers read and the tied pairs
+    made in the second thread) moves exactly what it moves without it, however often it is reused
+    (the budget's retries reuse it: the embedder must not change it in place)."""
     v, f = _lopsided()
+    if split:  # the large file's path (a second thread) on this small mesh
+        monkeypatch.setattr(pipeline, "SPLIT_FROM", 1000)
     word = encode(KEY, np.array([int(c) for c in PAYLOAD], np.uint8))
     prepared, placements, selections = _prepared_placements([(v, f)], KEY, len(word), "planes")
     assert placements[0] is not None and selections is not None
-    kept = [(p.copy(), a.z.copy(), a.mu.copy()) for p, a in selections]
+    assert all((s.geometric is not None and s.tied is not None) == split for s in selections)
+    def state(s: Selection) -> list[np.ndarray]:
+        geo = [] if s.geometric is None else [s.geometric.result().z, s.geometric.result().mu]
+        return [s.prio, s.analysis.z, s.analysis.mu, *geo]
+
+    kept = [[x.copy() for x in state(s)] for s in selections]
     plain = embed_parts([(v, f)], KEY, word, "planes", 0.07, prepared=prepared, placements=placements,
                         rms_budget=1.9e-4)[0][0]
     for _ in range(2):
         got = embed_parts([(v, f)], KEY, word, "planes", 0.07, prepared=prepared, placements=placements,
                           rms_budget=1.9e-4, selections=selections)[0][0]
         assert np.array_equal(got, plain)
-    for (p, z, mu), (p2, a) in zip(kept, selections, strict=True):
-        assert np.array_equal(p, p2) and np.array_equal(z, a.z) and np.array_equal(mu, a.mu)
+    for before, s in zip(kept, selections, strict=True):
+        assert all(np.array_equal(x, y) for x, y in zip(before, state(s), strict=True))
 
 
 def test_a_cell_that_changes_hands_after_the_follow_keeps_both_vertices() -> None:
