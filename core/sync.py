@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.hashing import combine, mix64
-from core.mesh import Adjacency, columns
+from core.mesh import Adjacency
 
 #: rings of colour refinement (the label of a vertex depends on its ROUNDS-ring), then the
 #: larger neighbourhoods tried on regular meshes before the geometric fallback
@@ -206,7 +206,7 @@ def vertex_labels(vertices: np.ndarray, adj: Adjacency, previous: Labels | None 
 def neighbour_means(vertices: np.ndarray, adj: Adjacency) -> np.ndarray:
     """(n, 3) mean of each vertex's neighbours (isolated vertices: 0)."""
     deg = np.maximum(adj.degree, 1)
-    return np.stack([adj.ring_sum(c) for c in columns(vertices)], 1) / deg[:, None]
+    return adj.ring_sum(vertices) / deg[:, None]
 
 
 def _fallback_cells(vertices: np.ndarray, adj: Adjacency) -> np.ndarray:

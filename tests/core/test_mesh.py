@@ -110,5 +110,8 @@ def test_ring_sum_adds_the_neighbours_in_the_order_bincount_does() -> None:
     x = rng.normal(size=len(v)) * 10.0 ** rng.integers(-8, 8, len(v))
     want = np.bincount(adj.rows, x[adj.indices], minlength=len(v))
     assert np.array_equal(adj.ring_sum(x), want)
+    # columns at once: each as it is alone
+    cols = np.stack([x, -3.0 * x[::-1], np.sqrt(np.abs(x))], axis=1)
+    assert np.array_equal(adj.ring_sum(cols), np.stack([adj.ring_sum(c) for c in cols.T], axis=1))
     # a vertex of no face sums to 0
     assert adjacency(f, len(v) + 1).ring_sum(np.append(x, 1.0))[-1] == 0.0
