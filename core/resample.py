@@ -50,10 +50,15 @@ MAX_BAD_SHARE = 0.1
 EVEN, ODD, UNKNOWN, BAD = 0, 1, -1, -2
 
 
+#: what :func:`_opposite` gives an edge of one face, and an edge of more than two
+BORDER, BRANCH = -1, -2
+
+
 def _opposite(faces: np.ndarray, n: int) -> np.ndarray:
-    """(m, 3) third vertex of the other face on edge j = (f[j], f[j+1]) of every face, -1 where
-    there is none: a boundary, or an edge of more than two faces. Edges are matched without
-    their direction, so that faces oriented inconsistently (CAD exports have them) still pair."""
+    """(m, 3) third vertex of the other face on edge j = (f[j], f[j+1]) of every face, or
+    :data:`BORDER` where there is none (a boundary) and :data:`BRANCH` on an edge of more than two
+    faces. Edges are matched without their direction, so that faces oriented inconsistently (CAD
+    exports have them) still pair."""
     m = len(faces)
     u = faces.ravel()
     v = faces[:, [1, 2, 0]].ravel()
@@ -67,10 +72,19 @@ def _opposite(faces: np.ndarray, n: int) -> np.ndarray:
     counts = np.diff(np.r_[starts, len(sk)])
     pairs = starts[counts == 2]
     a, b = order[pairs], order[pairs + 1]
-    out = np.full(3 * m, -1, np.int64)
+    out = np.full(3 * m, BORDER, np.int64)
     out[a] = w[b]
     out[b] = w[a]
+    branch = starts[counts > 2]
+    if branch.size:
+        out[order[np.repeat(branch, counts[counts > 2]) + _runs(counts[counts > 2])]] = BRANCH
     return out.reshape(m, 3)
+
+
+def _runs(lengths: np.ndarray) -> np.ndarray:
+    """``0 .. k-1`` for every ``k`` of ``lengths``, concatenated."""
+    ends = np.cumsum(lengths)
+    return np.arange(int(ends[-1]) if lengths.size else 0) - np.repeat(ends - lengths, lengths)
 
 
 def _labels(faces: np.ndarray, n: int, opp: np.ndarray) -> np.ndarray | None:
@@ -78,13 +92,17 @@ def _labels(faces: np.ndarray, n: int, opp: np.ndarray) -> np.ndarray | None:
     that a writer merged or a CAD face's slivers), or None when the mesh is not one 1-to-4 step."""
     deg = np.bincount(faces.ravel(), minlength=n)  # faces per vertex
     boundary = np.zeros(n, bool)
-    bnd = opp < 0
-    boundary[faces[bnd]] = True
-    boundary[faces[:, [1, 2, 0]][bnd]] = True
-    # valence = faces around an interior vertex, faces + 1 on a boundary
+    branch = np.zeros(n, bool)
+    for mask, on in ((opp == BORDER, boundary), (opp == BRANCH, branch)):
+        on[faces[mask]] = True
+        on[faces[:, [1, 2, 0]][mask]] = True
+    # valence = faces around an interior vertex, faces + 1 on a boundary; a vertex on an edge of
+    # more than two faces (CAD sheets meeting: 242 edges of four faces on the cycloidal gear) has
+    # no valence that tells even from odd, and seeding its midpoints as even made 831 of the gear's
+    # vertices contradictory after a midpoint step
     valence = deg + boundary
     lab = np.full(n, UNKNOWN, np.int8)
-    seeds = np.where(boundary, valence != 4, valence != 6)
+    seeds = np.where(boundary, valence != 4, valence != 6) & ~branch
     if not seeds.any() or (valence == 6).mean() < MIN_REGULAR_SHARE:
         return None
     lab[seeds] = EVEN
