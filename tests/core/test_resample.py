@@ -98,6 +98,29 @@ def test_a_midpoint_step_of_a_mesh_with_fins_comes_back_whole(seed: int) -> None
     assert len(cv) == len(v) and _same_mesh(v, f, cv, cf, tol=1e-12)
 
 
+def test_split_copies_of_a_solved_vertex_are_one_again() -> None:
+    """Coarse vertices solved within MERGE_TOL of each other and not neighbours are one vertex
+    the subdivider split (trimesh's Loop, on the gear's four-face edges: 294 of 21,384 twice);
+    neighbours that close stay apart."""
+    from core.resample import _merged
+
+    v, f = irregular_sphere(300, 4)
+    # split vertex 7: the faces on one side of it use a copy 1e-12 away
+    copy = len(v)
+    ring = np.flatnonzero((f == 7).any(axis=1))
+    split = f.copy()
+    split[ring[: len(ring) // 2]] = np.where(f[ring[: len(ring) // 2]] == 7, copy, f[ring[: len(ring) // 2]])
+    sv = np.vstack([v, v[7] + 1e-12])
+    mv, mf = _merged(sv, split)
+    assert len(mv) == len(v) and _same_mesh(v, f, mv, mf, tol=0.0)
+    # a neighbour moved onto vertex 7 is not merged
+    nb = int(f[ring[0]][f[ring[0]] != 7][0])
+    close = v.copy()
+    close[nb] = v[7] + 1e-12
+    cv, cf = _merged(close, f)
+    assert len(cv) == len(v) and len(cf) == len(f)
+
+
 def test_meshes_that_are_not_subdivided_are_left_alone() -> None:
     v, f = irregular_sphere(400, 3)
     assert undo_subdivision(v, f) is None
