@@ -32,6 +32,7 @@ import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from core.formats.base import nondegenerate
 from core.mesh import bbox_diagonal
 
 #: a vertex with a valence an odd vertex cannot have (interior 6, boundary 4) seeds the
@@ -79,16 +80,8 @@ def _opposite(faces: np.ndarray, n: int) -> np.ndarray:
     out = np.full(3 * m, BORDER, np.int64)
     out[a] = w[b]
     out[b] = w[a]
-    branch = starts[counts > 2]
-    if branch.size:
-        out[order[np.repeat(branch, counts[counts > 2]) + _runs(counts[counts > 2])]] = BRANCH
+    out[order[np.repeat(counts, counts) > 2]] = BRANCH  # every half-edge of an edge of > 2 faces
     return out.reshape(m, 3)
-
-
-def _runs(lengths: np.ndarray) -> np.ndarray:
-    """``0 .. k-1`` for every ``k`` of ``lengths``, concatenated."""
-    ends = np.cumsum(lengths)
-    return np.arange(int(ends[-1]) if lengths.size else 0) - np.repeat(ends - lengths, lengths)
 
 
 def _labels(faces: np.ndarray, n: int, opp: np.ndarray) -> np.ndarray | None:
@@ -214,9 +207,7 @@ def _merged(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nda
     keep = np.flatnonzero(rep == np.arange(n))
     index = np.full(n, -1, np.int64)
     index[keep] = np.arange(len(keep))
-    f = index[rep[faces]]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
-    return vertices[keep], f
+    return vertices[keep], nondegenerate(index[rep[faces]], False)
 
 
 def _undo_one_to_four(vertices: np.ndarray, faces: np.ndarray) -> tuple[str, np.ndarray, np.ndarray] | None:

@@ -179,7 +179,7 @@ def weld(
         raise MeshFormatError("face index out of range")
     if len(first) == len(pos):  # nothing to weld: slot_to_vertex is the identity
         shared = copy and (tri is triangles or np.may_share_memory(tri, triangles))
-        return pos, _nondegenerate(tri, shared), slot_to_vertex
+        return pos, nondegenerate(tri, shared), slot_to_vertex
     vertices = pos[first]
     faces = slot_to_vertex[tri] if tri.size else np.zeros((0, 3), np.int64)
     # Slots that share a position are copies of one vertex (UV seams, STL soups) or neighbours
@@ -193,7 +193,7 @@ def weld(
         slot_to_vertex[split] = len(vertices) + np.arange(split.size)
         vertices = np.concatenate([vertices, pos[split]])
         faces = slot_to_vertex[tri]
-    return vertices, _nondegenerate(faces, False), slot_to_vertex
+    return vertices, nondegenerate(faces, False), slot_to_vertex
 
 
 def _coinciding_neighbours(tri: np.ndarray, faces: np.ndarray, slot_to_vertex: np.ndarray) -> np.ndarray:
@@ -244,7 +244,7 @@ def _coinciding_neighbours(tri: np.ndarray, faces: np.ndarray, slot_to_vertex: n
     return candidates[sizes[slot_to_vertex[candidates]] > 1]
 
 
-def _nondegenerate(faces: np.ndarray, copy: bool) -> np.ndarray:
+def nondegenerate(faces: np.ndarray, copy: bool) -> np.ndarray:
     """``faces`` without the triangles that repeat a vertex (a copy when ``copy`` and none is dropped)."""
     keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     if keep.all():  # the usual case; a boolean selection would copy the array much more slowly
