@@ -206,6 +206,12 @@ def tied_pairs(prio: np.ndarray, adj: Adjacency) -> tuple[np.ndarray, np.ndarray
     return adj.rows[t], adj.indices[t]
 
 
+def scale_limit(n: int, tol: Tolerances = TOL) -> float:
+    """How many times the median scale a carrier's may be on a mesh of ``n`` vertices
+    (``tol.max_scale``, or ``tol.max_scale_small`` below :data:`TIE_BREAK_FROM`)."""
+    return tol.max_scale if n >= TIE_BREAK_FROM else tol.max_scale_small
+
+
 def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, methods: Sequence[str],
                     adj: Adjacency | None = None, labels: Labels | None = None,
                     tol: Tolerances = TOL, prio: np.ndarray | None = None) -> dict[str, Analysis]:
@@ -279,7 +285,7 @@ def carrier_statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray,
     mu, axes, lam, scale = ring_boundaries(v, adj, sel)
     ok = _surface(lam, scale, tol)
     if ok.any():
-        ok &= scale <= tol.max_scale * np.median(scale[ok])
+        ok &= scale <= scale_limit(len(v), tol) * np.median(scale[ok])
     sel, mu, axes, lam, scale = sel[ok], mu[ok], axes[ok], lam[ok], scale[ok]
     hashes = slot_hash(sel) if callable(slot_hash) else np.asarray(slot_hash)[ok]
     out = {}
@@ -323,7 +329,7 @@ def reanalysed(prev: Analysis, v: np.ndarray, adj: Adjacency, labels: Labels, ke
     mu[fresh], axes[fresh], scale[fresh] = f_mu, f_axes, f_scale
     lam[fresh] = method_moments(method, f_lam, f_scale, tol)
     if ok.any():
-        ok &= scale <= tol.max_scale * np.median(scale[ok])
+        ok &= scale <= scale_limit(len(v), tol) * np.median(scale[ok])
     hashes = slot_hashes(labels, key, sel)
     read = fresh[ok[fresh]]
     args = (method, v[sel[read]], mu[read], axes[read], lam[read], scale[read])

@@ -28,7 +28,12 @@ class Tolerances:
     min_flatness : float
         A neighbourhood with ``l2 <= min_flatness * l3`` is a line, not a surface: no carrier.
     max_scale : float
-        A carrier whose scale exceeds ``max_scale`` times the median scale is dropped.
+        A carrier whose scale exceeds ``max_scale`` times the median scale is dropped: its move
+        costs the RMS budget more than it buys (core/README.md, "Carriers the budget cannot
+        move"; 4 until 2026-12-05).  Meshes of fewer than
+        :data:`~core.analysis.TIE_BREAK_FROM` vertices use ``max_scale_small``: every carrier
+        counts there (the Sink's largest part lost the 32-bit key code at 2).
+    max_scale_small : float
     max_local_move : float
         Displacement cap of one carrier.
     max_move : float
@@ -54,7 +59,8 @@ class Tolerances:
     alpha: float = 0.05
     radius: float = 0.8
     min_flatness: float = 0.05
-    max_scale: float = 4.0
+    max_scale: float = 2.0
+    max_scale_small: float = 4.0
     max_local_move: float = 0.8
     max_move: float = 5e-3
     coarse_move: float = 0.25

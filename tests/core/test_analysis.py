@@ -109,3 +109,32 @@ def test_tied_pairs_decide_the_order_of_priorities_that_differ_in_their_tie_brea
         assert same_order(before, after, adj, tied_pairs(before, adj)) == want
         outcomes.add(want)
     assert outcomes == {True, False}
+
+
+def _grid_with_coarse_columns(nx: int, ny: int, coarse_from: int, step: float = 6.0
+                              ) -> tuple[np.ndarray, np.ndarray]:
+    """A bumpy height-field grid whose columns from ``coarse_from`` on are ``step`` times wider."""
+    xs = np.cumsum(np.where(np.arange(nx) < coarse_from, 1.0, step))
+    gx, gy = np.meshgrid(xs, np.arange(ny, dtype=float), indexing="ij")
+    rng = np.random.default_rng(3)
+    v = np.column_stack([gx.ravel(), gy.ravel(), 0.05 * rng.standard_normal(nx * ny)])
+    i = np.arange(nx - 1)[:, None] * ny + np.arange(ny - 1)[None, :]
+    a, b, c, d = i.ravel(), i.ravel() + ny, i.ravel() + ny + 1, i.ravel() + 1
+    return v, np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+
+
+@pytest.mark.parametrize(("nx", "coarse_carriers"), [(60, False), (40, True)])
+def test_rings_too_coarse_for_the_budget_carry_nothing_on_large_meshes(nx: int, coarse_carriers: bool) -> None:
+    """Rings about 3 x the median scale: no carrier on a mesh of >= TIE_BREAK_FROM vertices (the
+    embedder cannot afford their moves; TOL.max_scale), carriers below that size (max_scale_small)."""
+    from core.analysis import TIE_BREAK_FROM
+
+    v, f = _grid_with_coarse_columns(nx, 40, coarse_from=3 * nx // 4)
+    assert (len(v) >= TIE_BREAK_FROM) != coarse_carriers
+    a = analyse(v, f, "k", "planes")
+    inner_coarse = v[a.carriers, 0] > v[(3 * nx // 4 + 1) * 40, 0]
+    ratio = a.scale / np.median(a.scale)
+    assert bool(inner_coarse.any()) == coarse_carriers
+    assert ratio.max() <= (TOL.max_scale_small if coarse_carriers else TOL.max_scale)
+    if coarse_carriers:
+        assert ratio[inner_coarse].min() > TOL.max_scale  # they are the ones the large mesh drops
