@@ -124,7 +124,8 @@ def _grid_with_coarse_columns(nx: int, ny: int, coarse_from: int, step: float = 
 
 
 @pytest.mark.parametrize(("nx", "coarse_carriers"), [(60, False), (40, True)])
-def test_rings_too_coarse_for_the_budget_carry_nothing_on_large_meshes(nx: int, coarse_carriers: bool) -> None:
+def test_rings_too_coarse_for_the_budget_carry_nothing_on_large_meshes(nx: int,
+                                                                       coarse_carriers: bool) -> None:
     """Rings about 3 x the median scale: no carrier on a mesh of >= TIE_BREAK_FROM vertices (the
     embedder cannot afford their moves; TOL.max_scale), carriers below that size (max_scale_small)."""
     from core.analysis import TIE_BREAK_FROM
