@@ -34,6 +34,7 @@ class Tolerances:
         :data:`~core.analysis.TIE_BREAK_FROM` vertices use ``max_scale_small``: every carrier
         counts there (the Sink's largest part lost the 32-bit key code at 2).
     max_scale_small : float
+        ``max_scale`` of meshes of fewer than :data:`~core.analysis.TIE_BREAK_FROM` vertices.
     max_local_move : float
         Displacement cap of one carrier.
     max_move : float
