@@ -206,10 +206,14 @@ def tied_pairs(prio: np.ndarray, adj: Adjacency) -> tuple[np.ndarray, np.ndarray
     return adj.rows[t], adj.indices[t]
 
 
-def scale_limit(n: int, tol: Tolerances = TOL) -> float:
-    """How many times the median scale a carrier's may be on a mesh of ``n`` vertices
-    (``tol.max_scale``, or ``tol.max_scale_small`` below :data:`TIE_BREAK_FROM`)."""
-    return tol.max_scale if n >= TIE_BREAK_FROM else tol.max_scale_small
+def _within_scale(scale: np.ndarray, ok: np.ndarray, n: int, tol: Tolerances) -> np.ndarray:
+    """``ok`` without the carriers whose scale exceeds the median of those it keeps by more than
+    ``tol.max_scale`` times on a mesh of ``n`` vertices (``tol.max_scale_small`` below
+    :data:`TIE_BREAK_FROM`)."""
+    if not ok.any():
+        return ok
+    limit = tol.max_scale if n >= TIE_BREAK_FROM else tol.max_scale_small
+    return ok & (scale <= limit * np.median(scale[ok]))
 
 
 def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, methods: Sequence[str],
@@ -284,8 +288,7 @@ def carrier_statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray,
     kept vertices."""
     mu, axes, lam, scale = ring_boundaries(v, adj, sel)
     ok = _surface(lam, scale, tol)
-    if ok.any():
-        ok &= scale <= scale_limit(len(v), tol) * np.median(scale[ok])
+    ok = _within_scale(scale, ok, len(v), tol)
     sel, mu, axes, lam, scale = sel[ok], mu[ok], axes[ok], lam[ok], scale[ok]
     hashes = slot_hash(sel) if callable(slot_hash) else np.asarray(slot_hash)[ok]
     out = {}
@@ -328,8 +331,7 @@ def reanalysed(prev: Analysis, v: np.ndarray, adj: Adjacency, labels: Labels, ke
     ok[fresh] = _surface(f_lam, f_scale, tol)
     mu[fresh], axes[fresh], scale[fresh] = f_mu, f_axes, f_scale
     lam[fresh] = method_moments(method, f_lam, f_scale, tol)
-    if ok.any():
-        ok &= scale <= scale_limit(len(v), tol) * np.median(scale[ok])
+    ok = _within_scale(scale, ok, len(v), tol)
     hashes = slot_hashes(labels, key, sel)
     read = fresh[ok[fresh]]
     args = (method, v[sel[read]], mu[read], axes[read], lam[read], scale[read])

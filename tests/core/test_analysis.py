@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.analysis import analyse, analyse_methods, statistic
+from core.analysis import TIE_BREAK_FROM, analyse, analyse_methods, statistic
 from core.tolerances import TOL
 from tests.core.meshes import irregular_sphere, similarity
 
@@ -128,12 +128,11 @@ def test_rings_too_coarse_for_the_budget_carry_nothing_on_large_meshes(nx: int,
                                                                        coarse_carriers: bool) -> None:
     """Rings about 3 x the median scale: no carrier on a mesh of >= TIE_BREAK_FROM vertices (the
     embedder cannot afford their moves; TOL.max_scale), carriers below that size (max_scale_small)."""
-    from core.analysis import TIE_BREAK_FROM
-
-    v, f = _grid_with_coarse_columns(nx, 40, coarse_from=3 * nx // 4)
+    ny, coarse_from = 40, 3 * nx // 4
+    v, f = _grid_with_coarse_columns(nx, ny, coarse_from)
     assert (len(v) >= TIE_BREAK_FROM) != coarse_carriers
     a = analyse(v, f, "k", "planes")
-    inner_coarse = v[a.carriers, 0] > v[(3 * nx // 4 + 1) * 40, 0]
+    inner_coarse = v[a.carriers, 0] > v[(coarse_from + 1) * ny, 0]
     ratio = a.scale / np.median(a.scale)
     assert bool(inner_coarse.any()) == coarse_carriers
     assert ratio.max() <= (TOL.max_scale_small if coarse_carriers else TOL.max_scale)
