@@ -133,7 +133,8 @@ def execute_job(records: JobRecords, blobs: BlobStore, job_id: str, *, worker: s
         if result is not None:
             blobs.put(result_key(job_id), result.body)
             if not records.finish(job_id, "succeeded", result=result, completed=True):
-                blobs.delete(result_key(job_id))  # cancelled or deleted while it ran
+                blobs.delete(result_key(job_id))  # cancelled or deleted after its last report
+                log.info("job %s was cancelled after its run ended: result dropped", job_id)
                 outcome = "cancelled"
         elif error is not None:
             records.finish(job_id, "failed", error=error)
