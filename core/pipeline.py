@@ -621,11 +621,14 @@ def _verified(final: list[Analysis], key: str | bytes, method: str, bits: np.nda
 #: per slot), off at 8, after meshoptimizer 5-10 %
 GEOMETRIC_PART_MIN = 64
 GEOMETRIC_PER_SLOT = 4
-#: a file of fewer vertices gets no geometric layer: neither the embedder nor the detector looks
-#: for it (about CARRIER_SHARE of the usable vertices are carriers, and the shortest codeword is a
-#: 1-bit payload's; the 8 per slot this was first derived from are kept, so that small files'
-#: detection cost and false-positive figure stay as they were)
+#: a file of fewer vertices gets no geometric layer (about CARRIER_SHARE of the usable vertices are
+#: carriers, and the shortest codeword is a 1-bit payload's; the 8 per slot this was first derived
+#: from are kept, so that small files' embedding stays as it was)
 GEOMETRIC_MIN_VERTICES = int(np.ceil(8 * codeword_length(1) / CARRIER_SHARE))
+#: ...and the detector looks for one in files of at least this many: a marked file simplified by up
+#: to 75 % (the rocker arm's 10,044 vertices simplified by 30 % are 7,030, below the embedder's
+#: threshold, and its geometric layer read them, and 50 %, when the detector looked)
+GEOMETRIC_DETECT_FROM = GEOMETRIC_MIN_VERTICES // 4
 
 
 def _prepared_placements(meshes: list[tuple[np.ndarray, np.ndarray]], key: str | bytes, L: int, method: str
@@ -932,11 +935,12 @@ def _read_views(doc: MeshDocument, parts: list[int], key: str | bytes, options: 
     connectivity layer first (what an untouched file reads, without the cost of the surface's
     frame), then both layers together and the geometric layer alone, made only when it did not
     read.  The false-positive figure counts the geometric views whenever the file is large enough
-    to have had geometric carriers (:data:`GEOMETRIC_MIN_VERTICES`), whether or not it has them.
+    to have had geometric carriers before a simplification (:data:`GEOMETRIC_DETECT_FROM`), whether
+    or not it has them.
     ``layers``: the parts' :func:`_layers`, when the caller has them."""
     methods, expected = options.detect_methods, options.payload_bits
     local, adjs = layers if layers is not None else _layers(doc, parts, key, methods, analysed)
-    if sum(len(doc.parts[i].vertices) for i in parts) < GEOMETRIC_MIN_VERTICES:
+    if sum(len(doc.parts[i].vertices) for i in parts) < GEOMETRIC_DETECT_FROM:
         return detect_views([(CONNECTIVITY, local)], key, expected)
     geo = _GeometricViews(doc, parts, adjs, key, methods, _codeword_lengths(expected))
 

@@ -42,10 +42,10 @@ def _simplified(v: np.ndarray, f: np.ndarray, fraction: float) -> tuple[np.ndarr
     return _drop_unreferenced(v, out[:n].reshape(-1, 3).astype(np.int64))
 
 
-def _lopsided() -> tuple[np.ndarray, np.ndarray]:
-    """An irregular closed surface of 20,000 vertices with three distinct principal axes and a
+def _lopsided(n: int = 20000) -> tuple[np.ndarray, np.ndarray]:
+    """An irregular closed surface of ``n`` vertices with three distinct principal axes and a
     lopsided bump (third moments far from 0)."""
-    v, f = irregular_sphere(20000, 7)
+    v, f = irregular_sphere(n, 7)
     bump = 0.3 * np.exp(-8.0 * ((v - [0.8, 0.3, 0.0]) ** 2).sum(axis=1))[:, None]
     return v * np.array([1.6, 1.0, 0.7]) + bump, f
 
@@ -79,6 +79,19 @@ def test_a_simplified_mesh_reads_with_the_geometric_layer(marked, fraction: floa
     moved = detect_mesh([similarity(sv, sf, np.random.default_rng(3))], KEY)
     assert moved.detected and moved.payload == PAYLOAD
     assert not detect_mesh([(sv, sf)], "another key").detected
+
+
+def test_a_file_simplified_below_the_layers_size_still_reads_with_it() -> None:
+    """A file just large enough for the geometric layer, simplified by half: fewer vertices than a
+    file needs to get the layer, but the detector still looks for it (the rocker arm simplified by
+    30 % was read by nothing while it did not)."""
+    v, f = _lopsided(8000)
+    new, report = embed_mesh(v, f, KEY, payload=PAYLOAD, method="planes")
+    assert "geometry" in report.layers and len(v) >= pipeline.GEOMETRIC_MIN_VERTICES
+    sv, sf = _simplified(new, f, 0.5)
+    assert pipeline.GEOMETRIC_DETECT_FROM <= len(sv) < pipeline.GEOMETRIC_MIN_VERTICES
+    res = detect_mesh([(sv, sf)], KEY)
+    assert res.detected and res.payload == PAYLOAD and res.layer == "geometry"
 
 
 def test_a_crop_reads_with_the_connectivity_layer(marked) -> None:
