@@ -16,6 +16,7 @@ from functools import partial
 import numpy as np
 
 from core.analysis import (
+    GEOMETRIC_METHOD,
     SIGNED_FROM,
     Analysis,
     analyse,
@@ -490,6 +491,11 @@ class _Mesh:
         self.margin = strength  # smaller when the RMS budget asks for it
         self.keyed = True  # carriers moved outside go to their keyed sides (set by embed_parts)
 
+    def _of(self, a: Analysis) -> str:
+        """The statistic the carriers of ``a`` are moved with: the geometric layer's own
+        (:data:`~core.analysis.GEOMETRIC_METHOD`) or the file's method."""
+        return GEOMETRIC_METHOD if a.geometric else self.method
+
     def tied(self) -> Pairs:
         """:func:`~core.analysis.tied_pairs` of the priorities the selection was first made with."""
         if self._tied is None:
@@ -525,7 +531,7 @@ class _Mesh:
             for b, bits, free, share in layers:
                 want = np.where(bits == 0, 1.0, -1.0)
                 # a bit 1 read within AT_BEST of the deepest its boundary allows has nowhere to go
-                deep = (want < 0) & (want * b.z >= (1.0 - AT_BEST) * deepest(self.method, b, self.tol))
+                deep = (want < 0) & (want * b.z >= (1.0 - AT_BEST) * deepest(self._of(b), b, self.tol))
                 bad = (want * b.z < share * limit) & ~deep & free
                 bad &= ~self.skipped[b.carriers] & ~self.held[b.carriers]
                 if bad.any():
@@ -533,7 +539,7 @@ class _Mesh:
             return out
 
         def at(m: float, todo: list[tuple[Analysis, np.ndarray, np.ndarray, float]]) -> list[_Moves]:
-            return [_moves(self.method, b, bits, bad, self.v, self.v0, share * m, self.cap, self.tol,
+            return [_moves(self._of(b), b, bits, bad, self.v, self.v0, share * m, self.cap, self.tol,
                            self.keyed)
                     for b, bits, bad, share in todo]
 
@@ -624,9 +630,9 @@ class _Mesh:
     def _own(self, a: Analysis, moved: np.ndarray, near: np.ndarray | None) -> None:
         """Re-read the carriers of ``a`` that moved, and the boundaries of those next to a moved
         vertex (``near``) when the other layer exists (one layer alone is an independent set)."""
-        _restate(a, self.v, np.flatnonzero(moved[a.carriers]), self.method, self.tol)
+        _restate(a, self.v, np.flatnonzero(moved[a.carriers]), self._of(a), self.tol)
         if near is not None:
-            _refresh(a, self.v, self.adj, np.flatnonzero(near[a.carriers]), self.method, self.tol)
+            _refresh(a, self.v, self.adj, np.flatnonzero(near[a.carriers]), self._of(a), self.tol)
 
     def reselect(self) -> bool:
         """Choose the geometric carriers again at the current positions (the moves change which

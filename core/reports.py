@@ -60,6 +60,8 @@ class DetectResult(_Report):
     copies: float
     carriers: int
     crc_ok: bool
+    #: the method the file was marked with; None when no method was given and only the geometric
+    #: layer read the mark (its carriers are read alike whatever the method)
     method: str | None
     key_derived: bool
     bit_errors: int | None = None    # only with an expected payload

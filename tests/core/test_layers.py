@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from core import pipeline
-from core.analysis import analyse_geometric
+from core.analysis import analyse_geometric, statistic
 from core.api import detect_mesh, embed_mesh
 from core.coding import encode
 from core.embedding import Selection, _Mesh, embed_parts
@@ -92,6 +92,32 @@ def test_a_file_simplified_below_the_layers_size_still_reads_with_it() -> None:
     assert pipeline.GEOMETRIC_DETECT_FROM <= len(sv) < pipeline.GEOMETRIC_MIN_VERTICES
     res = detect_mesh([(sv, sf)], KEY)
     assert res.detected and res.payload == PAYLOAD and res.layer == "geometry"
+
+
+def test_the_geometric_layer_reads_every_method_with_planes() -> None:
+    """Its carriers are moved and read with one statistic whatever the file's method
+    (analysis.GEOMETRIC_METHOD): the ellipsoid marks cost the RMS budget too much there."""
+    v, f = _lopsided()
+    word = encode(KEY, np.array([int(c) for c in PAYLOAD], np.uint8))
+    prepared, placements, _ = _prepared_placements([(v, f)], KEY, len(word), "ellipsoids")
+    assert placements[0] is not None
+    got = analyse_geometric(v, prepared[0][0], KEY, ["ellipsoids", "planes"], placements[0])
+    a = got["ellipsoids"]
+    assert a is got["planes"] and a.geometric and len(a.carriers) > 0
+    np.testing.assert_allclose(a.z, statistic("planes", v[a.carriers], a.mu, a.axes, a.lam, a.scale))
+
+
+def test_a_geometric_read_names_the_method_only_when_connectivity_carriers_show_it(marked) -> None:
+    """Read through the geometric view alone, every method decodes the same carriers: the method is
+    named by the connectivity carriers still at the embedder's margin (planes here), never by the
+    decoder that happened to read first, and is None where none show it."""
+    v, f, _ = marked
+    sv, sf = _simplified(v, f, 0.1)
+    res = detect_mesh([(sv, sf)], KEY)
+    assert res.detected and res.payload == PAYLOAD and res.layer == "geometry" and res.method == "planes"
+    e, _ = embed_mesh(*_lopsided(), KEY, payload=PAYLOAD, method="ellipsoids")
+    res = detect_mesh([_simplified(e, f, 0.1)], KEY)
+    assert res.detected and res.payload == PAYLOAD and res.method in (None, "ellipsoids")
 
 
 def test_a_crop_reads_with_the_connectivity_layer(marked) -> None:

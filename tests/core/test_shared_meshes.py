@@ -240,13 +240,15 @@ def _noisy(v: np.ndarray, level: float, seed: int) -> np.ndarray:
 
 @pytest.mark.parametrize(("name", "method", "attack"), [
     ("beetle.off", "planes", "noise 0.5 %"),
-    ("turbineblade.ply", "ellipsoids", "noise 0.5 %"),
-    ("turbineblade.ply", "ellipsoids", "quantisation 8 bits"),
+    ("dragon.ply", "ellipsoids", "noise 0.5 %"),
+    ("dragon.ply", "ellipsoids", "quantisation 8 bits"),
 ])
 def test_zero_mean_errors_are_read_by_the_signed_variant(name: str, method: str, attack: str) -> None:
     """Issue 14: carriers moved to their keyed side of their oriented rings, read by the signed
     statistic, survive attacks whose errors average out (without the signed variant none of these
-    read, nor did they before the keyed sides: core/README.md, section 3b)."""
+    read, nor did they before the keyed sides: core/README.md, section 3b).  The turbine blade with
+    ellipsoids was here until its geometric layer moved to planes (stop 30): the budget that freed
+    makes its connectivity marks read noise 0.5 % and 8-bit quantisation without the signed variant."""
     key, payload = "meshmark-issue14-key", "10110011100011110000101011001010"
     data = shared_mesh_path(name).read_bytes()
     marked = embed_file(data, key, filename=name, payload=payload, method=method)
