@@ -410,10 +410,10 @@ def detect_views(views: list[View], key: str | bytes, expected: np.ndarray | Non
                 found = [(d.analyses, hit) for d in decoders
                          if (hit := d.try_variant(adaptive, ranked, frame)) is not None]
                 if found:
-                    hit = _which_method(found)
+                    answer = _which_method(found)
                     if layer != CONNECTIVITY:
-                        hit = replace(hit, method=_marked_with(given, hit.method))
-                    return replace(hit, layer=layer)
+                        answer = replace(answer, method=_marked_with(given, answer.method))
+                    return replace(answer, layer=layer)
         near += [replace(d.near, layer=layer) for d in decoders if d.near is not None]
     # informed detection accepted by its p-value but without an exact CRC match
     accepted = [r for r in near if r.detected]
