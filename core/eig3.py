@@ -6,7 +6,8 @@ is D. Eberly's "A Robust Eigensolver for 3x3 Symmetric Matrices" (Geometric Tool
 whole-array numpy on the six distinct entries (contiguous columns, no per-matrix work): eigenvalues
 from the trigonometric solution of the characteristic cubic of the normalised matrix, the
 eigenvector of the best separated eigenvalue from the largest cross product of two rows of
-``A - l I``, the middle one from the 2x2 problem in its orthogonal complement, the third as a cross product;
+``A - l I``, the middle one from the 2x2 problem in its orthogonal complement (diagonalised by its
+rotation angle, no eigenvalue needed), the third as a cross product;
 the eigenvalues are then refined as Rayleigh quotients (the cubic loses half the digits of a double
 eigenvalue, the quotient of an orthonormal basis does not). The tests compare it with LAPACK on
 random, rank-deficient and (near-)degenerate matrices.
@@ -80,23 +81,22 @@ def _complement(w: Vec) -> tuple[Vec, Vec]:
     return u, _cross(w, u)
 
 
-def _second_vector(m: _Sym, w: Vec, lam: np.ndarray) -> Vec:
-    """Unit eigenvector of ``lam`` orthogonal to the eigenvector ``w``: the 2x2 problem of ``m``
-    restricted to the plane orthogonal to ``w``."""
+def _second_vector(m: _Sym, w: Vec, larger: np.ndarray) -> Vec:
+    """Unit eigenvector of the middle eigenvalue, orthogonal to the eigenvector ``w`` of an outer
+    one: of ``m`` restricted to the plane orthogonal to ``w``, the eigenvector of the ``larger``
+    (``w`` the largest's) or the smaller of its two eigenvalues, from the rotation angle
+    ``atan2(2 m01, m00 - m11) / 2`` (no eigenvalue needed: the cubic's is only good to about
+    sqrt(eps) of the largest, which picked an arbitrary vector within a pair closer than that)."""
     u, v = _complement(w)
     mv = m.apply(v)
-    m00 = _dot(u, m.apply(u)) - lam
+    m00 = _dot(u, m.apply(u))
     m01 = _dot(u, mv)
-    m11 = _dot(v, mv) - lam
-    # null vector of [[m00, m01], [m01, m11]] from its larger row: (m01, -m00) or (m11, -m01)
-    first = np.maximum(np.abs(m00), np.abs(m01)) >= np.maximum(np.abs(m11), np.abs(m01))
-    p = np.where(first, m01, m11)
-    q = np.where(first, -m00, -m01)
-    n = np.sqrt(p * p + q * q)
-    ok = n > 0
-    n = np.where(ok, n, 1.0)
-    a = np.where(ok, p / n, 1.0)
-    b = np.where(ok, q / n, 0.0)
+    m11 = _dot(v, mv)
+    theta = 0.5 * np.arctan2(2.0 * m01, m00 - m11)
+    c, s = np.cos(theta), np.sin(theta)
+    # (c, s) belongs to the larger eigenvalue of the 2x2 problem, (-s, c) to the smaller
+    a = np.where(larger, c, -s)
+    b = np.where(larger, s, c)
     return (a * u[0] + b * v[0], a * u[1] + b * v[1], a * u[2] + b * v[2])
 
 
@@ -137,11 +137,10 @@ def eigh3(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     angle = np.arccos(half) / 3.0
     beta2 = 2.0 * np.cos(angle)
     beta0 = 2.0 * np.cos(angle + 2.0 * np.pi / 3.0)
-    lam1 = q - ps * (beta0 + beta2)
     # the eigenvector of the best separated eigenvalue first (the largest when half >= 0)
     top = half >= 0
     w = _vector_from_rows(a, q + ps * np.where(top, beta2, beta0))
-    mid = _second_vector(a, w, lam1)
+    mid = _second_vector(a, w, top)
     third = _cross(w, mid)
     e0, e2 = _where(top, third, w), _where(top, w, third)
     vec = np.empty((k, 3, 3))
