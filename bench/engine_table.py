@@ -35,6 +35,7 @@ CASES: dict[str, tuple[str, Any]] = {
     "noise 0.3 %": ("uniform_noise", 0.003),
     "Laplacian 0.1x10": ("smoothing", 10),
     "crop to 25 %": ("crop", 0.75),
+    "crop to 50 %": ("crop", 0.5),
     # issue 14's re-triangulation, smoothing and quantisation rows
     "midpoint": ("subdivide", "midpoint"),
     "Loop": ("subdivide", "loop"),

@@ -315,6 +315,8 @@ def view_variants(layer: str, per_method: dict[str, list[Analysis]] | None) -> l
     sides), and the signed variant needs :data:`SIGNED_FROM` connectivity carriers (a view made
     lazily, ``per_method`` None, counts it).  With both methods a file with the geometric layer
     tries 12 + 8 + 6 candidates per length, as many as before the signed variant (10 + 10 + 6)."""
+    if layer == WIDER:
+        return [VARIANTS[0]]
     many = layer != GEOMETRY and (per_method is None or any(
         sum(len(a.carriers) for a in analyses if not a.geometric) >= SIGNED_FROM
         for analyses in per_method.values()))
@@ -341,6 +343,11 @@ def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
 #: connectivity layer alone (a crop: the surface's frame moved), the geometric layer alone (a
 #: re-triangulation: the connectivity labels are gone)
 BOTH, CONNECTIVITY, GEOMETRY = "both", "connectivity", "geometry"
+#: the connectivity carriers of a mesh labelled one colour-refinement step wider
+#: (:func:`core.sync.wider_labels`): read the embedder's way only (hard votes, automatic slots:
+#: what read every crop of the Beast and the Ogre that it read at all), and reported as the
+#: connectivity layer
+WIDER = "wider"
 
 #: a view: its layer name and, per method, the analyses of every part (or a function that makes
 #: them, called only when the views before it did not read)
@@ -352,14 +359,15 @@ def view_candidates(layer: str, per_method: dict[str, list[Analysis]] | None, me
     """Candidates a view tries and the chance that any of them passes on random bits: methods x
     decoding variants x (every explicit length's CRC + zero padding, and the key-code test), plus
     the compact frame's lengths when the view's connectivity carriers are fewer than
-    ``COMPACT_BELOW`` (only the connectivity view tries it); the variants are
+    ``COMPACT_BELOW`` (only the connectivity views try it; the wider one when the connectivity
+    view's carriers are, ``per_method`` then being those); the variants are
     :func:`view_variants`.  ``per_method``:
     the view's analyses, or None for a view made lazily (it then counts as its layer allows)."""
     n_tries = len(view_variants(layer, per_method)) * methods
     lengths = [len(expected)] if expected is not None else list(range(1, MAX_PAYLOAD_BITS + 1))
     fp_explicit = sum(2.0 ** -(CRC_BITS + (message_length(n) - n - CRC_BITS)) for n in lengths)
     fp_key = binomial_tail(KEY_CODE_MAX_ERRORS, KEY_CODE_BITS) if expected is None else 0.0
-    compact = _compact_lengths(per_method, lengths) if layer == CONNECTIVITY and per_method else []
+    compact = _compact_lengths(per_method, lengths) if layer in (CONNECTIVITY, WIDER) and per_method else []
     return n_tries, n_tries * (fp_explicit + fp_key) + methods * len(compact) * 2.0**-CRC_BITS
 
 
@@ -383,8 +391,9 @@ def detect_views(views: list[View], key: str | bytes, expected: np.ndarray | Non
     lengths = [len(expected)] if expected is not None else list(range(1, MAX_PAYLOAD_BITS + 1))
     given = next((v for _, v in views if isinstance(v, dict)), {})
     methods = max(len(given), 1)
-    totals = [view_candidates(layer, v if isinstance(v, dict) else None, methods, expected)
-              for layer, v in views]
+    # the wider view, made lazily, tries the compact frame when the connectivity view's carriers are few
+    totals = [view_candidates(layer, v if isinstance(v, dict) else given if layer == WIDER else None, methods,
+                              expected) for layer, v in views]
     n_tries = sum(t for t, _ in totals)
     fpp_total = min(1.0, sum(p for _, p in totals))
     near: list[DetectResult] = []
@@ -392,7 +401,7 @@ def detect_views(views: list[View], key: str | bytes, expected: np.ndarray | Non
         per_method = made if isinstance(made, dict) else made()
         if not any(len(a.carriers) for analyses in per_method.values() for a in analyses):
             continue
-        compact = _compact_lengths(per_method, lengths)
+        compact = _compact_lengths(given if layer == WIDER else per_method, lengths)
         # methods whose analyses are the same objects (the geometric layer reads every method's
         # carriers with one statistic) are decoded once, and a mark read there names no method
         by_analyses: dict[tuple[int, ...], list[str]] = {}
@@ -411,10 +420,11 @@ def detect_views(views: list[View], key: str | bytes, expected: np.ndarray | Non
                          if (hit := d.try_variant(adaptive, ranked, frame)) is not None]
                 if found:
                     answer = _which_method(found)
-                    if layer != CONNECTIVITY:
+                    if layer not in (CONNECTIVITY, WIDER):
                         answer = replace(answer, method=_marked_with(given, answer.method))
-                    return replace(answer, layer=layer)
-        near += [replace(d.near, layer=layer) for d in decoders if d.near is not None]
+                    return replace(answer, layer=CONNECTIVITY if layer == WIDER else layer)
+        near += [replace(d.near, layer=CONNECTIVITY if layer == WIDER else layer)
+                 for d in decoders if d.near is not None]
     # informed detection accepted by its p-value but without an exact CRC match
     accepted = [r for r in near if r.detected]
     if accepted:

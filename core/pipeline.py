@@ -6,6 +6,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import replace
 from functools import partial
+from typing import NamedTuple
 
 import numpy as np
 
@@ -35,6 +36,8 @@ from core.detection import (
     BOTH,
     CONNECTIVITY,
     GEOMETRY,
+    WIDER,
+    View,
     agreement,
     compact_slots,
     detect_analyses,
@@ -59,7 +62,7 @@ from core.parallel import SPLIT_FROM, beside, by_rows
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
 from core.resample import undo_subdivision
 from core.slots import assign_slots, bucketed_slots, own_copy, ranked_by_default
-from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, Labels, vertex_labels
+from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, Labels, vertex_labels, widens, wider_labels
 from core.tolerances import TOL, Tolerances
 from core.unsmooth import MIN_SCORE, choose_iterations, unsmooth
 
@@ -156,26 +159,51 @@ def _analyses(doc: MeshDocument, parts: list[int], key: str | bytes, methods: Se
     return _layers(doc, parts, key, methods, progress)[0]
 
 
-#: every part's connectivity analyses per method, and each part's adjacency (:func:`_layers`)
-_Layers = tuple[dict[str, list[Analysis]], list[Adjacency]]
+class _Layers(NamedTuple):
+    """Every part's connectivity analyses per method, adjacency and labels (:func:`_layers`)."""
+
+    local: dict[str, list[Analysis]]
+    adjs: list[Adjacency]
+    labels: list[Labels]
 
 
 def _layers(doc: MeshDocument, parts: list[int], key: str | bytes, methods: Sequence[str],
             progress: Progress = _no_progress) -> _Layers:
-    """Every part's connectivity carriers analysed under ``key``, and each part's adjacency;
+    """Every part's connectivity carriers analysed under ``key``, its adjacency and its labels;
     ``progress`` by vertices analysed."""
     out: dict[str, list[Analysis]] = {m: [] for m in methods}
-    adjs = []
+    adjs, labels = [], []
     total, done = sum(len(doc.parts[i].vertices) for i in parts) or 1, 0
     for i in parts:
         v, f = doc.parts[i].vertices, doc.parts[i].faces
         adj = adjacency(f, len(v))
-        for m, a in analyse_methods(v, f, key, methods, adj=adj).items():
+        lab = vertex_labels(v, adj)
+        for m, a in analyse_methods(v, f, key, methods, adj=adj, labels=lab).items():
             out[m].append(a)
         adjs.append(adj)
+        labels.append(lab)
         done += len(doc.parts[i].vertices)
         progress(done / total)
-    return out, adjs
+    return _Layers(out, adjs, labels)
+
+
+def _wider(doc: MeshDocument, parts: list[int], key: str | bytes, layers: _Layers
+           ) -> dict[str, list[Analysis]] | None:
+    """The connectivity view with every part whose labels have :func:`~core.sync.wider_labels`
+    analysed at those (the others as they are), or None when no part has them (a cropped piece
+    whose colour refinement stopped a step before the whole mesh's)."""
+    wider = [wider_labels(doc.parts[i].vertices, adj, lab)
+             for i, adj, lab in zip(parts, layers.adjs, layers.labels, strict=True)]
+    if all(w is None for w in wider):
+        return None
+    out: dict[str, list[Analysis]] = {m: list(a) for m, a in layers.local.items()}
+    for k, (i, adj, w) in enumerate(zip(parts, layers.adjs, wider, strict=True)):
+        if w is None:
+            continue
+        p = doc.parts[i]
+        for m, a in analyse_methods(p.vertices, p.faces, key, list(out), adj=adj, labels=w).items():
+            out[m][k] = a
+    return out
 
 
 class _GeometricViews:
@@ -916,7 +944,7 @@ def _unsmoothed(doc: MeshDocument, parts: list[int], layers: _Layers, options: O
     (:mod:`core.unsmooth`), ``n`` chosen by the agreement of the connectivity carriers' votes, and
     ``n``; None when no ``n`` makes them agree by :data:`~core.unsmooth.MIN_SCORE` (an unmarked
     file, a wrong key, an attack the inverse does not undo), or when there are no carriers."""
-    local, adjs = layers
+    local, adjs = layers.local, layers.adjs
     if not any(len(a.carriers) for a in next(iter(local.values()))):
         return None
     meshes = [(doc.parts[i].vertices, adj) for i, adj in zip(parts, adjs, strict=True)]
@@ -936,16 +964,22 @@ def _read_views(doc: MeshDocument, parts: list[int], key: str | bytes, options: 
     frame), then both layers together and the geometric layer alone, made only when it did not
     read.  The false-positive figure counts the geometric views whenever the file is large enough
     to have had geometric carriers before a simplification (:data:`GEOMETRIC_DETECT_FROM`), whether
-    or not it has them.
+    or not it has them.  Last, when some part's labels stopped early enough for it
+    (:func:`~core.sync.widens`, connectivity only, so the figure counts it exactly when it is
+    made), the connectivity layer with those parts' labels a refinement step wider (:func:`_wider`:
+    cropped pieces of meshes such as the Beast).
     ``layers``: the parts' :func:`_layers`, when the caller has them."""
     methods, expected = options.detect_methods, options.payload_bits
-    local, adjs = layers if layers is not None else _layers(doc, parts, key, methods, analysed)
-    if sum(len(doc.parts[i].vertices) for i in parts) < GEOMETRIC_DETECT_FROM:
-        return detect_views([(CONNECTIVITY, local)], key, expected)
-    geo = _GeometricViews(doc, parts, adjs, key, methods, _codeword_lengths(expected))
-
-    return detect_views([(CONNECTIVITY, local), (BOTH, lambda: geo.both(local)),
-                         (GEOMETRY, lambda: geo.view(best=True))], key, expected)
+    if layers is None:
+        layers = _layers(doc, parts, key, methods, analysed)
+    local, adjs = layers.local, layers.adjs
+    views: list[View] = [(CONNECTIVITY, local)]
+    if sum(len(doc.parts[i].vertices) for i in parts) >= GEOMETRIC_DETECT_FROM:
+        geo = _GeometricViews(doc, parts, adjs, key, methods, _codeword_lengths(expected))
+        views += [(BOTH, lambda: geo.both(local)), (GEOMETRY, lambda: geo.view(best=True))]
+    if any(widens(lab) for lab in layers.labels):
+        views.append((WIDER, lambda: _wider(doc, parts, key, layers) or {}))
+    return detect_views(views, key, expected)
 
 
 def _coarsened(doc: MeshDocument, parts: list[int]) -> tuple[MeshDocument, str] | None:

@@ -10,13 +10,15 @@ import meshoptimizer
 import numpy as np
 import pytest
 
-from core import pipeline
+from core import pipeline, sync
 from core.analysis import analyse_geometric, statistic
 from core.api import detect_mesh, embed_mesh
 from core.coding import encode
 from core.embedding import Selection, _Mesh, embed_parts
 from core.geosync import rung_size
+from core.mesh import adjacency
 from core.pipeline import _prepared_placements
+from core.sync import vertex_labels
 from core.tolerances import TOL
 from tests.core.meshes import irregular_sphere, similarity
 
@@ -128,6 +130,42 @@ def test_a_crop_reads_with_the_connectivity_layer(marked) -> None:
     cv, cf = _drop_unreferenced(v, f[keep])
     res = detect_mesh([(cv, cf)], KEY)
     assert res.detected and res.payload == PAYLOAD and res.layer == "connectivity"
+
+
+def test_a_piece_whose_labels_stop_a_step_early_reads_one_step_wider(monkeypatch) -> None:
+    """A crop breaks symmetries, so its colour refinement can stop a step of ``ROUND_STEPS`` before
+    the whole mesh's did (the Beast: 6 rounds, its crops 3) and no label matches; the detector
+    also reads the connectivity layer one step wider.  Here the embedder starts at 6 rounds (as
+    on a mesh of few distinct 3-ring labels), the detector's piece stops at 3."""
+    v, f = irregular_sphere(6000, 11)
+    with monkeypatch.context() as m:
+        m.setattr(sync, "ROUND_STEPS", sync.ROUND_STEPS[1:])
+        assert vertex_labels(v, adjacency(f, len(v))).rounds == sync.ROUND_STEPS[0] == 6
+        new, _ = embed_mesh(v, f, KEY, payload=PAYLOAD, method="ellipsoids")
+    keep = new[f].mean(axis=1)[:, 0] < 0.2
+    cv, cf = _drop_unreferenced(new, f[keep])
+    assert vertex_labels(cv, adjacency(cf, len(cv))).rounds == 3
+    res = detect_mesh([(cv, cf)], KEY, payload=PAYLOAD)
+    assert res.detected and res.payload == PAYLOAD and res.layer == "connectivity"
+    with monkeypatch.context() as m:
+        m.setattr(pipeline, "widens", lambda labels: False)
+        assert not detect_mesh([(cv, cf)], KEY, payload=PAYLOAD).detected
+
+
+def test_the_wider_view_counts_in_the_false_positive_figure(marked, monkeypatch) -> None:
+    """Made only when the others do not read, the wider view still counts in every answer's
+    union bound: one candidate per method (the embedder's decoding), 2 beside the 26 of the
+    others with both methods."""
+    v, f, _ = marked
+    keep = v[f].mean(axis=1)[:, 0] < 0.1
+    cv, cf = _drop_unreferenced(v, f[keep])
+    res = detect_mesh([(cv, cf)], KEY, payload=PAYLOAD)
+    with monkeypatch.context() as m:
+        m.setattr(pipeline, "widens", lambda labels: False)
+        alone = detect_mesh([(cv, cf)], KEY, payload=PAYLOAD)
+    assert res.detected and alone.detected
+    ratio = res.false_positive_probability / alone.false_positive_probability
+    assert ratio == pytest.approx(28 / 26, rel=1e-6)
 
 
 @pytest.mark.parametrize("split", [False, True])
