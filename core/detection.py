@@ -315,7 +315,7 @@ def view_variants(layer: str, per_method: dict[str, list[Analysis]] | None) -> l
     sides), and the signed variant needs :data:`SIGNED_FROM` connectivity carriers (a view made
     lazily, ``per_method`` None, counts it).  With both methods a file with the geometric layer
     tries 12 + 8 + 6 candidates per length, as many as before the signed variant (10 + 10 + 6)."""
-    if layer == WIDER:
+    if layer in RELABELLED:
         return [VARIANTS[0]]
     many = layer != GEOMETRY and (per_method is None or any(
         sum(len(a.carriers) for a in analyses if not a.geometric) >= SIGNED_FROM
@@ -343,11 +343,12 @@ def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
 #: connectivity layer alone (a crop: the surface's frame moved), the geometric layer alone (a
 #: re-triangulation: the connectivity labels are gone)
 BOTH, CONNECTIVITY, GEOMETRY = "both", "connectivity", "geometry"
-#: the connectivity carriers of a mesh labelled one colour-refinement step wider
-#: (:func:`core.sync.wider_labels`): read the embedder's way only (hard votes, automatic slots:
+#: the connectivity carriers of a mesh labelled one colour-refinement step wider or narrower
+#: (:func:`core.sync.stepped_labels`): read the embedder's way only (hard votes, automatic slots:
 #: what read every crop of the Beast and the Ogre that it read at all), and reported as the
 #: connectivity layer
-WIDER = "wider"
+WIDER, NARROWER = "wider", "narrower"
+RELABELLED = (WIDER, NARROWER)
 
 #: a view: its layer name and, per method, the analyses of every part (or a function that makes
 #: them, called only when the views before it did not read)
@@ -359,15 +360,16 @@ def view_candidates(layer: str, per_method: dict[str, list[Analysis]] | None, me
     """Candidates a view tries and the chance that any of them passes on random bits: methods x
     decoding variants x (every explicit length's CRC + zero padding, and the key-code test), plus
     the compact frame's lengths when the view's connectivity carriers are fewer than
-    ``COMPACT_BELOW`` (only the connectivity views try it; the wider one when the connectivity
-    view's carriers are, ``per_method`` then being those); the variants are
+    ``COMPACT_BELOW`` (only the connectivity views try it; the relabelled ones when the
+    connectivity view's carriers are, ``per_method`` then being those); the variants are
     :func:`view_variants`.  ``per_method``:
     the view's analyses, or None for a view made lazily (it then counts as its layer allows)."""
     n_tries = len(view_variants(layer, per_method)) * methods
     lengths = [len(expected)] if expected is not None else list(range(1, MAX_PAYLOAD_BITS + 1))
     fp_explicit = sum(2.0 ** -(CRC_BITS + (message_length(n) - n - CRC_BITS)) for n in lengths)
     fp_key = binomial_tail(KEY_CODE_MAX_ERRORS, KEY_CODE_BITS) if expected is None else 0.0
-    compact = _compact_lengths(per_method, lengths) if layer in (CONNECTIVITY, WIDER) and per_method else []
+    local = layer in (CONNECTIVITY, *RELABELLED)
+    compact = _compact_lengths(per_method, lengths) if local and per_method else []
     return n_tries, n_tries * (fp_explicit + fp_key) + methods * len(compact) * 2.0**-CRC_BITS
 
 
@@ -391,9 +393,9 @@ def detect_views(views: list[View], key: str | bytes, expected: np.ndarray | Non
     lengths = [len(expected)] if expected is not None else list(range(1, MAX_PAYLOAD_BITS + 1))
     given = next((v for _, v in views if isinstance(v, dict)), {})
     methods = max(len(given), 1)
-    # the wider view, made lazily, tries the compact frame when the connectivity view's carriers are few
-    totals = [view_candidates(layer, v if isinstance(v, dict) else given if layer == WIDER else None, methods,
-                              expected) for layer, v in views]
+    # the relabelled views, made lazily, try the compact frame when the connectivity view's carriers are few
+    totals = [view_candidates(layer, v if isinstance(v, dict) else given if layer in RELABELLED else None,
+                              methods, expected) for layer, v in views]
     n_tries = sum(t for t, _ in totals)
     fpp_total = min(1.0, sum(p for _, p in totals))
     near: list[DetectResult] = []
@@ -401,7 +403,7 @@ def detect_views(views: list[View], key: str | bytes, expected: np.ndarray | Non
         per_method = made if isinstance(made, dict) else made()
         if not any(len(a.carriers) for analyses in per_method.values() for a in analyses):
             continue
-        compact = _compact_lengths(given if layer == WIDER else per_method, lengths)
+        compact = _compact_lengths(given if layer in RELABELLED else per_method, lengths)
         # methods whose analyses are the same objects (the geometric layer reads every method's
         # carriers with one statistic) are decoded once, and a mark read there names no method
         by_analyses: dict[tuple[int, ...], list[str]] = {}
@@ -420,10 +422,10 @@ def detect_views(views: list[View], key: str | bytes, expected: np.ndarray | Non
                          if (hit := d.try_variant(adaptive, ranked, frame)) is not None]
                 if found:
                     answer = _which_method(found)
-                    if layer not in (CONNECTIVITY, WIDER):
+                    if layer not in (CONNECTIVITY, *RELABELLED):
                         answer = replace(answer, method=_marked_with(given, answer.method))
-                    return replace(answer, layer=CONNECTIVITY if layer == WIDER else layer)
-        near += [replace(d.near, layer=CONNECTIVITY if layer == WIDER else layer)
+                    return replace(answer, layer=CONNECTIVITY if layer in RELABELLED else layer)
+        near += [replace(d.near, layer=CONNECTIVITY if layer in RELABELLED else layer)
                  for d in decoders if d.near is not None]
     # informed detection accepted by its p-value but without an exact CRC match
     accepted = [r for r in near if r.detected]

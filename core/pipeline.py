@@ -36,6 +36,7 @@ from core.detection import (
     BOTH,
     CONNECTIVITY,
     GEOMETRY,
+    NARROWER,
     WIDER,
     View,
     agreement,
@@ -62,7 +63,15 @@ from core.parallel import SPLIT_FROM, beside, by_rows
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
 from core.resample import undo_subdivision
 from core.slots import assign_slots, bucketed_slots, own_copy, ranked_by_default
-from core.sync import MAX_DEGREE, MIN_BOUNDARY_DEGREE, MIN_DEGREE, Labels, vertex_labels, widens, wider_labels
+from core.sync import (
+    MAX_DEGREE,
+    MIN_BOUNDARY_DEGREE,
+    MIN_DEGREE,
+    Labels,
+    has_step,
+    stepped_labels,
+    vertex_labels,
+)
 from core.tolerances import TOL, Tolerances
 from core.unsmooth import MIN_SCORE, choose_iterations, unsmooth
 
@@ -187,17 +196,18 @@ def _layers(doc: MeshDocument, parts: list[int], key: str | bytes, methods: Sequ
     return _Layers(out, adjs, labels)
 
 
-def _wider(doc: MeshDocument, parts: list[int], key: str | bytes, layers: _Layers
-           ) -> dict[str, list[Analysis]] | None:
-    """The connectivity view with every part whose labels have :func:`~core.sync.wider_labels`
-    analysed at those (the others as they are), or None when no part has them (a cropped piece
-    whose colour refinement stopped a step before the whole mesh's)."""
-    wider = [wider_labels(doc.parts[i].vertices, adj, lab)
+def _relabelled(doc: MeshDocument, parts: list[int], key: str | bytes, layers: _Layers, step: int
+                ) -> dict[str, list[Analysis]]:
+    """The connectivity view with every part whose labels have
+    :func:`~core.sync.stepped_labels` ``step`` steps away analysed at those (the others as they
+    are), or empty when no part has them (a cropped piece whose colour refinement stopped a step
+    before or after the whole mesh's)."""
+    other = [stepped_labels(doc.parts[i].vertices, adj, lab, step)
              for i, adj, lab in zip(parts, layers.adjs, layers.labels, strict=True)]
-    if all(w is None for w in wider):
-        return None
+    if all(w is None for w in other):
+        return {}
     out: dict[str, list[Analysis]] = {m: list(a) for m, a in layers.local.items()}
-    for k, (i, adj, w) in enumerate(zip(parts, layers.adjs, wider, strict=True)):
+    for k, (i, adj, w) in enumerate(zip(parts, layers.adjs, other, strict=True)):
         if w is None:
             continue
         p = doc.parts[i]
@@ -964,10 +974,10 @@ def _read_views(doc: MeshDocument, parts: list[int], key: str | bytes, options: 
     frame), then both layers together and the geometric layer alone, made only when it did not
     read.  The false-positive figure counts the geometric views whenever the file is large enough
     to have had geometric carriers before a simplification (:data:`GEOMETRIC_DETECT_FROM`), whether
-    or not it has them.  Last, when some part's labels stopped early enough for it
-    (:func:`~core.sync.widens`, connectivity only, so the figure counts it exactly when it is
-    made), the connectivity layer with those parts' labels a refinement step wider (:func:`_wider`:
-    cropped pieces of meshes such as the Beast).
+    or not it has them.  Last, the connectivity layer with the labels of every part one
+    refinement step wider, then one narrower, where there is such a step
+    (:func:`~core.sync.has_step`, connectivity only, so the figure counts these views exactly when
+    they are made; :func:`_relabelled`): cropped pieces of meshes such as the Beast and the Ogre.
     ``layers``: the parts' :func:`_layers`, when the caller has them."""
     methods, expected = options.detect_methods, options.payload_bits
     if layers is None:
@@ -977,8 +987,9 @@ def _read_views(doc: MeshDocument, parts: list[int], key: str | bytes, options: 
     if sum(len(doc.parts[i].vertices) for i in parts) >= GEOMETRIC_DETECT_FROM:
         geo = _GeometricViews(doc, parts, adjs, key, methods, _codeword_lengths(expected))
         views += [(BOTH, lambda: geo.both(local)), (GEOMETRY, lambda: geo.view(best=True))]
-    if any(widens(lab) for lab in layers.labels):
-        views.append((WIDER, lambda: _wider(doc, parts, key, layers) or {}))
+    for layer, step in ((WIDER, 1), (NARROWER, -1)):
+        if any(has_step(lab, step) for lab in layers.labels):
+            views.append((layer, partial(_relabelled, doc, parts, key, layers, step)))
     return detect_views(views, key, expected)
 
 

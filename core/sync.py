@@ -202,22 +202,27 @@ def vertex_labels(vertices: np.ndarray, adj: Adjacency, previous: Labels | None 
     return _labelled(vertices, adj, colours, usable, done, distinct)
 
 
-def widens(labels: Labels) -> bool:
-    """Whether :func:`wider_labels` has labels for a mesh of these labels."""
-    return labels.rounds < ROUND_STEPS[-1] and bool(labels.usable.any())
+def has_step(labels: Labels, step: int) -> bool:
+    """Whether :func:`stepped_labels` has labels ``step`` steps of :data:`ROUND_STEPS` from these."""
+    k = ROUND_STEPS.index(labels.rounds) + step if labels.rounds in ROUND_STEPS else -1
+    return 0 <= k < len(ROUND_STEPS) and bool(labels.usable.any())
 
 
-def wider_labels(vertices: np.ndarray, adj: Adjacency, labels: Labels) -> Labels | None:
-    """The labels of :func:`vertex_labels` refined one step of :data:`ROUND_STEPS` further, or None
-    when ``labels`` have the most rounds (the choice depends on connectivity only).  What the whole
-    mesh had when a crop made its piece stop a step earlier: a crop breaks the symmetries that
-    leave labels alike, so the piece has more distinct labels at fewer rounds (the Beast: 0.38 of
-    its labels distinct at 3 rounds, 6 chosen; its crops to 25 %: 0.54-0.62 at 3 rounds, 3 chosen,
-    and no carrier of theirs with a label of the whole)."""
-    if not widens(labels):
+def stepped_labels(vertices: np.ndarray, adj: Adjacency, labels: Labels, step: int) -> Labels | None:
+    """The labels of :func:`vertex_labels` refined ``step`` steps of :data:`ROUND_STEPS` further (+1)
+    or fewer (-1), or None when there is no such step (the choice depends on connectivity only).
+    What the whole mesh had when a crop made its piece stop elsewhere.  A crop breaks the symmetries
+    that leave labels alike, so the piece has more distinct labels at fewer rounds and can stop a
+    step earlier (the Beast: 0.38 of its labels distinct at 3 rounds, 6 chosen; its crops to 25 %:
+    0.54-0.62 at 3 rounds, 3 chosen, and no carrier of theirs with a label of the whole); or wider
+    rings gain more labels in the piece than in the whole, and it goes a step further (the Ogre: 9
+    rounds, 12 adding under 10 %; a crop to 50 %: 12).  Wider labels resume the refinement from
+    ``labels``; narrower ones are refined anew."""
+    if not has_step(labels, step):
         return None
-    rounds = min(r for r in ROUND_STEPS if r > labels.rounds)
-    colours = wl_colours(adj, rounds, labels.connectivity, labels.rounds)
+    rounds = ROUND_STEPS[ROUND_STEPS.index(labels.rounds) + step]
+    colours = (wl_colours(adj, rounds, labels.connectivity, labels.rounds) if rounds > labels.rounds
+               else wl_colours(adj, rounds))
     return _labelled(vertices, adj, colours, labels.usable, rounds, distinct_count(colours[labels.usable]))
 
 

@@ -148,7 +148,25 @@ def test_a_piece_whose_labels_stop_a_step_early_reads_one_step_wider(monkeypatch
     res = detect_mesh([(cv, cf)], KEY, payload=PAYLOAD)
     assert res.detected and res.payload == PAYLOAD and res.layer == "connectivity"
     with monkeypatch.context() as m:
-        m.setattr(pipeline, "widens", lambda labels: False)
+        m.setattr(pipeline, "has_step", lambda labels, step: False)
+        assert not detect_mesh([(cv, cf)], KEY, payload=PAYLOAD).detected
+
+
+def test_a_piece_whose_labels_go_a_step_further_reads_one_step_narrower(marked, monkeypatch) -> None:
+    """The other way round (an Ogre crop: 12 rounds where the whole stopped at 9, wider rings
+    gaining more labels in the piece): here the detector's rounds are pushed to 6 while the
+    embedder used 3."""
+    v, f, _ = marked
+    keep = v[f].mean(axis=1)[:, 0] < 0.1
+    cv, cf = _drop_unreferenced(v, f[keep])
+    with monkeypatch.context() as m:
+        m.setattr(sync, "ROUND_STEPS", (3, 6))
+        m.setattr(sync, "MORE_RINGS_BELOW", 1.01)  # more rings whatever the share and the gain
+        m.setattr(sync, "MORE_RINGS_GAIN", 0.0)
+        assert vertex_labels(cv, adjacency(cf, len(cv))).rounds == 6
+        res = detect_mesh([(cv, cf)], KEY, payload=PAYLOAD)
+        assert res.detected and res.payload == PAYLOAD and res.layer == "connectivity"
+        m.setattr(pipeline, "has_step", lambda labels, step: False)
         assert not detect_mesh([(cv, cf)], KEY, payload=PAYLOAD).detected
 
 
@@ -161,7 +179,7 @@ def test_the_wider_view_counts_in_the_false_positive_figure(marked, monkeypatch)
     cv, cf = _drop_unreferenced(v, f[keep])
     res = detect_mesh([(cv, cf)], KEY, payload=PAYLOAD)
     with monkeypatch.context() as m:
-        m.setattr(pipeline, "widens", lambda labels: False)
+        m.setattr(pipeline, "has_step", lambda labels, step: False)
         alone = detect_mesh([(cv, cf)], KEY, payload=PAYLOAD)
     assert res.detected and alone.detected
     ratio = res.false_positive_probability / alone.false_positive_probability

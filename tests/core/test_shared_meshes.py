@@ -189,8 +189,9 @@ def test_sink_carries_a_32_bit_payload_of_the_users_choosing(key: str) -> None:
         assert marked.report.max_displacement <= 3e-3 + 1e-7
         res = detect_file(marked.data, key, filename="sink.3ds")
         assert res.detected and res.crc_ok and res.payload == payload and res.method == "planes"
-        # the connectivity view's and the wider one's candidates (3.8e-7 before the wider view)
-        assert res.false_positive_probability < 5e-7
+        # 6 variants of the connectivity view per method, 1 each of the wider and narrower ones (the
+        # Sink's parts use several round counts): 3.8e-7 before those two, 5.7e-7 with them
+        assert res.false_positive_probability < 6e-7
         assert not detect_file(marked.data, key + "?", filename="sink.3ds").detected
 
 

@@ -15,9 +15,9 @@ from core.sync import (
     ROUND_STEPS,
     is_regular,
     select_carriers,
+    stepped_labels,
     tie_broken,
     vertex_labels,
-    wider_labels,
     wl_colours,
 )
 from tests.conftest import shared_mesh_path
@@ -74,26 +74,32 @@ def test_usable_vertices_by_valence() -> None:
     assert MAX_DEGREE == 12
 
 
-def test_wider_labels_are_the_next_refinement_step() -> None:
-    """What the detector reads when a crop's refinement stopped a step before the whole's: the
-    colours of the next step of ROUND_STEPS (none after the last), the fallback kept as chosen."""
+def test_stepped_labels_are_the_neighbouring_refinement_steps() -> None:
+    """What the detector reads when a crop's refinement stopped a step before or after the
+    whole's: the colours of the next or previous step of ROUND_STEPS (none past either end), the
+    fallback decided anew."""
     v, f = irregular_sphere(3000, 4)
     adj = adjacency(f, len(v))
     labels = vertex_labels(v, adj)
     assert labels.rounds == ROUND_STEPS[0] and not labels.regular
-    wider = wider_labels(v, adj, labels)
+    wider = stepped_labels(v, adj, labels, 1)
     assert wider is not None and wider.rounds == ROUND_STEPS[1] and not wider.regular
     assert np.array_equal(wider.connectivity, wl_colours(adj, ROUND_STEPS[1]))
     assert np.array_equal(wider.labels, wider.connectivity) and np.array_equal(wider.usable, labels.usable)
     assert not np.array_equal(wider.labels, labels.labels)
-    assert wider_labels(v, adj, replace(labels, rounds=ROUND_STEPS[-1])) is None
+    assert stepped_labels(v, adj, labels, -1) is None
+    back = stepped_labels(v, adj, wider, -1)
+    assert back is not None and back.rounds == labels.rounds and np.array_equal(back.labels, labels.labels)
+    assert stepped_labels(v, adj, replace(labels, rounds=ROUND_STEPS[-1]), 1) is None
     m = trimesh.creation.icosphere(subdivisions=3)  # regular: the geometric fallback at every step
     iv = np.asarray(m.vertices)
     iadj = adjacency(m.faces, len(iv))
     ico = vertex_labels(iv, iadj)
-    assert ico.regular and ico.rounds == ROUND_STEPS[-1] and wider_labels(iv, iadj, ico) is None
-    below = wider_labels(iv, iadj, replace(ico, rounds=ROUND_STEPS[0], connectivity=wl_colours(iadj, 3)))
-    assert below is not None and below.regular and np.unique(below.labels).size > 0.5 * len(iv)
+    assert ico.regular and ico.rounds == ROUND_STEPS[-1] and stepped_labels(iv, iadj, ico, 1) is None
+    below = stepped_labels(iv, iadj, ico, -1)
+    assert below is not None and below.regular and below.rounds == ROUND_STEPS[-2]
+    assert np.array_equal(below.connectivity, wl_colours(iadj, ROUND_STEPS[-2]))
+    assert np.unique(below.labels).size > 0.5 * len(iv)
 
 
 def test_subdivided_meshes_are_regular_and_use_the_geometric_fallback() -> None:
