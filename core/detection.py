@@ -314,7 +314,8 @@ def view_variants(layer: str, per_method: dict[str, list[Analysis]] | None) -> l
     hashed slots only); the geometric view has no signed statistic (its carriers stay on their
     sides), and the signed variant needs :data:`SIGNED_FROM` connectivity carriers (a view made
     lazily, ``per_method`` None, counts it).  With both methods a file with the geometric layer
-    tries 12 + 8 + 6 candidates per length, as many as before the signed variant (10 + 10 + 6)."""
+    tries 12 + 8 + 6 candidates per length, as many as before the signed variant (10 + 10 + 6),
+    and 2 more for each relabelled view (:data:`RELABELLED`: the embedder's own variant only)."""
     if layer in RELABELLED:
         return [VARIANTS[0]]
     many = layer != GEOMETRY and (per_method is None or any(
