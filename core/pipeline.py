@@ -1089,7 +1089,13 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
 CAPACITY_LADDER = (256, 192, 128, 96, 64, 48, 32, 24, 16, 12, 8, 4, 2, 1)
 #: random payloads of a length that must all embed for capacity to offer it (whether a payload fits
 #: at the edge depends on its bits: with 4, bench capacity-keys still found 5-8 % of the payloads of
-#: the offered lengths refused on the Duck and Spot, and compact lengths refused on the Sink)
+#: the offered lengths refused on the Duck and Spot, and compact lengths refused on the Sink).  At
+#: stop 32 (50 keys, 6 small meshes, both methods): 8 trials, 2 of 5,698 trial embeddings refused
+#: (the Sink with ellipsoids, key-31, 32 bits; Spot with planes, key-31, 188); 12, 1 of 5,718 (the
+#: Spot one); 16, none of 5,656, but 2 keys of the Sink with planes offered 0 bits where a random
+#: 32-bit payload embeds (why was not looked into),
+#: the Sink with ellipsoids at most 24 bits, and capacity took twice as long (the Sink's max 7.8 ->
+#: 19.5 s).  Kept at 8.
 CAPACITY_TRIALS = 8
 #: copies of the codeword from which capacity trusts the carrier count without embedding (a 1M
 #: mesh has ~450 copies of the longest codeword; eight trial embeddings would take ~12 s there)
