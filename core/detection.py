@@ -351,6 +351,11 @@ BOTH, CONNECTIVITY, GEOMETRY = "both", "connectivity", "geometry"
 WIDER, NARROWER = "wider", "narrower"
 RELABELLED = (WIDER, NARROWER)
 
+
+def _reported(layer: str) -> str:
+    """The layer a view's answer names: a relabelled view's is the connectivity layer."""
+    return CONNECTIVITY if layer in RELABELLED else layer
+
 #: a view: its layer name and, per method, the analyses of every part (or a function that makes
 #: them, called only when the views before it did not read)
 View = tuple[str, "dict[str, list[Analysis]] | Callable[[], dict[str, list[Analysis]]]"]
@@ -369,7 +374,7 @@ def view_candidates(layer: str, per_method: dict[str, list[Analysis]] | None, me
     lengths = [len(expected)] if expected is not None else list(range(1, MAX_PAYLOAD_BITS + 1))
     fp_explicit = sum(2.0 ** -(CRC_BITS + (message_length(n) - n - CRC_BITS)) for n in lengths)
     fp_key = binomial_tail(KEY_CODE_MAX_ERRORS, KEY_CODE_BITS) if expected is None else 0.0
-    local = layer in (CONNECTIVITY, *RELABELLED)
+    local = _reported(layer) == CONNECTIVITY
     compact = _compact_lengths(per_method, lengths) if local and per_method else []
     return n_tries, n_tries * (fp_explicit + fp_key) + methods * len(compact) * 2.0**-CRC_BITS
 
@@ -423,11 +428,10 @@ def detect_views(views: list[View], key: str | bytes, expected: np.ndarray | Non
                          if (hit := d.try_variant(adaptive, ranked, frame)) is not None]
                 if found:
                     answer = _which_method(found)
-                    if layer not in (CONNECTIVITY, *RELABELLED):
+                    if _reported(layer) != CONNECTIVITY:
                         answer = replace(answer, method=_marked_with(given, answer.method))
-                    return replace(answer, layer=CONNECTIVITY if layer in RELABELLED else layer)
-        near += [replace(d.near, layer=CONNECTIVITY if layer in RELABELLED else layer)
-                 for d in decoders if d.near is not None]
+                    return replace(answer, layer=_reported(layer))
+        near += [replace(d.near, layer=_reported(layer)) for d in decoders if d.near is not None]
     # informed detection accepted by its p-value but without an exact CRC match
     accepted = [r for r in near if r.detected]
     if accepted:

@@ -202,10 +202,16 @@ def vertex_labels(vertices: np.ndarray, adj: Adjacency, previous: Labels | None 
     return _labelled(vertices, adj, colours, usable, done, distinct)
 
 
+def _stepped_rounds(labels: Labels, step: int) -> int | None:
+    """The round count ``step`` steps of :data:`ROUND_STEPS` from ``labels``' (None: past either
+    end, or no usable vertex)."""
+    k = ROUND_STEPS.index(labels.rounds) + step if labels.rounds in ROUND_STEPS else -1
+    return ROUND_STEPS[k] if 0 <= k < len(ROUND_STEPS) and labels.usable.any() else None
+
+
 def has_step(labels: Labels, step: int) -> bool:
     """Whether :func:`stepped_labels` has labels ``step`` steps of :data:`ROUND_STEPS` from these."""
-    k = ROUND_STEPS.index(labels.rounds) + step if labels.rounds in ROUND_STEPS else -1
-    return 0 <= k < len(ROUND_STEPS) and bool(labels.usable.any())
+    return _stepped_rounds(labels, step) is not None
 
 
 def stepped_labels(vertices: np.ndarray, adj: Adjacency, labels: Labels, step: int) -> Labels | None:
@@ -218,9 +224,9 @@ def stepped_labels(vertices: np.ndarray, adj: Adjacency, labels: Labels, step: i
     rings gain more labels in the piece than in the whole, and it goes a step further (the Ogre: 9
     rounds, 12 adding under 10 %; a crop to 50 %: 12).  Wider labels resume the refinement from
     ``labels``; narrower ones are refined anew."""
-    if not has_step(labels, step):
+    rounds = _stepped_rounds(labels, step)
+    if rounds is None:
         return None
-    rounds = ROUND_STEPS[ROUND_STEPS.index(labels.rounds) + step]
     colours = (wl_colours(adj, rounds, labels.connectivity, labels.rounds) if rounds > labels.rounds
                else wl_colours(adj, rounds))
     return _labelled(vertices, adj, colours, labels.usable, rounds, distinct_count(colours[labels.usable]))

@@ -60,6 +60,15 @@ def marked() -> tuple[np.ndarray, np.ndarray, object]:
     return new, f, report
 
 
+
+@pytest.fixture(scope="module")
+def cropped(marked) -> tuple[np.ndarray, np.ndarray]:
+    """The marked mesh with half its surface cut away (the frame moves, the labels stay)."""
+    v, f, _ = marked
+    keep = v[f].mean(axis=1)[:, 0] < 0.1
+    return _drop_unreferenced(v, f[keep])
+
+
 def test_both_layers_read_the_untouched_mesh(marked) -> None:
     v, f, report = marked
     assert report.layers == ["connectivity", "geometry"] and report.geometric_carriers > 0
@@ -122,12 +131,10 @@ def test_a_geometric_read_names_the_method_only_when_connectivity_carriers_show_
     assert res.detected and res.payload == PAYLOAD and res.method in (None, "ellipsoids")
 
 
-def test_a_crop_reads_with_the_connectivity_layer(marked) -> None:
+def test_a_crop_reads_with_the_connectivity_layer(cropped) -> None:
     """Half the surface cut away moves the frame: the geometric carriers are lost, the
     connectivity ones are not."""
-    v, f, _ = marked
-    keep = v[f].mean(axis=1)[:, 0] < 0.1
-    cv, cf = _drop_unreferenced(v, f[keep])
+    cv, cf = cropped
     res = detect_mesh([(cv, cf)], KEY)
     assert res.detected and res.payload == PAYLOAD and res.layer == "connectivity"
 
@@ -152,13 +159,11 @@ def test_a_piece_whose_labels_stop_a_step_early_reads_one_step_wider(monkeypatch
         assert not detect_mesh([(cv, cf)], KEY, payload=PAYLOAD).detected
 
 
-def test_a_piece_whose_labels_go_a_step_further_reads_one_step_narrower(marked, monkeypatch) -> None:
+def test_a_piece_whose_labels_go_a_step_further_reads_one_step_narrower(cropped, monkeypatch) -> None:
     """The other way round (an Ogre crop: 12 rounds where the whole stopped at 9, wider rings
     gaining more labels in the piece): here the detector's rounds are pushed to 6 while the
     embedder used 3."""
-    v, f, _ = marked
-    keep = v[f].mean(axis=1)[:, 0] < 0.1
-    cv, cf = _drop_unreferenced(v, f[keep])
+    cv, cf = cropped
     with monkeypatch.context() as m:
         m.setattr(sync, "ROUND_STEPS", (3, 6))
         m.setattr(sync, "MORE_RINGS_BELOW", 1.01)  # more rings whatever the share and the gain
@@ -170,13 +175,11 @@ def test_a_piece_whose_labels_go_a_step_further_reads_one_step_narrower(marked, 
         assert not detect_mesh([(cv, cf)], KEY, payload=PAYLOAD).detected
 
 
-def test_the_wider_view_counts_in_the_false_positive_figure(marked, monkeypatch) -> None:
+def test_the_wider_view_counts_in_the_false_positive_figure(cropped, monkeypatch) -> None:
     """Made only when the others do not read, the wider view still counts in every answer's
     union bound: one candidate per method (the embedder's decoding), 2 beside the 26 of the
     others with both methods."""
-    v, f, _ = marked
-    keep = v[f].mean(axis=1)[:, 0] < 0.1
-    cv, cf = _drop_unreferenced(v, f[keep])
+    cv, cf = cropped
     res = detect_mesh([(cv, cf)], KEY, payload=PAYLOAD)
     with monkeypatch.context() as m:
         m.setattr(pipeline, "has_step", lambda labels, step: False)
