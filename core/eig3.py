@@ -128,8 +128,10 @@ def eigh3(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     q = (a.a00 + a.a11 + a.a22) / 3.0
     b00, b11, b22 = a.a00 - q, a.a11 - q, a.a22 - q
     p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * off) / 6.0)
-    # exactly diagonal matrices (including multiples of I) are handled apart, below
-    diag = ~(off > 0)
+    # diagonal matrices (including multiples of I) are handled apart, below.  Off-diagonal entries
+    # below 1e-100 of the largest are taken as zero: they move no eigenvalue by more than that, and
+    # below it p**3 can underflow to 0 (found by hypothesis: an entry 1.4e-151 gave 0/0)
+    diag = ~(off > 1e-200)
     ps = np.where(diag, 1.0, p)
     det = (b00 * (b11 * b22 - a.a12 * a.a12) - a.a01 * (a.a01 * b22 - a.a12 * a.a02)
            + a.a02 * (a.a01 * a.a12 - b11 * a.a02))

@@ -69,6 +69,8 @@ def test_special_matrices() -> None:
 # eigenvalue and rebuild errors were 3.7e-15 and 3.3e-15 of the largest entry (1.6e-8, 1.2e-8 before)
 @example([6.79108812e05, 0.0, 1.5625e-02, 1.5625e-02, 6.79108812e05, 1.5625e-02], 1.0)
 @example([279370.0, 279373.0, 0.0, 279376.0, 1.953125e-03, 0.0], 1.0)
+# an off-diagonal entry so small that p**3 underflowed (0/0 in the cubic)
+@example([1.0, 0.0, 1.39208552e-151, 1.0, 0.0, 1.0], 1.0)
 def test_any_symmetric_matrix(entries: list[float], scale: float) -> None:
     a00, a01, a02, a11, a12, a22 = entries
     m = np.array([[[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]]]) * scale
