@@ -356,6 +356,7 @@ def _reported(layer: str) -> str:
     """The layer a view's answer names: a relabelled view's is the connectivity layer."""
     return CONNECTIVITY if layer in RELABELLED else layer
 
+
 #: a view: its layer name and, per method, the analyses of every part (or a function that makes
 #: them, called only when the views before it did not read)
 View = tuple[str, "dict[str, list[Analysis]] | Callable[[], dict[str, list[Analysis]]]"]

@@ -1093,9 +1093,8 @@ CAPACITY_LADDER = (256, 192, 128, 96, 64, 48, 32, 24, 16, 12, 8, 4, 2, 1)
 #: stop 32 (50 keys, 6 small meshes, both methods): 8 trials, 2 of 5,698 trial embeddings refused
 #: (the Sink with ellipsoids, key-31, 32 bits; Spot with planes, key-31, 188); 12, 1 of 5,718 (the
 #: Spot one); 16, none of 5,656, but 2 keys of the Sink with planes offered 0 bits where a random
-#: 32-bit payload embeds (why was not looked into),
-#: the Sink with ellipsoids at most 24 bits, and capacity took twice as long (the Sink's max 7.8 ->
-#: 19.5 s).  Kept at 8.
+#: 32-bit payload embeds (why was not looked into), the Sink with ellipsoids at most 24 bits, and
+#: capacity took twice as long (the Sink's max 7.8 -> 19.5 s).  Kept at 8.
 CAPACITY_TRIALS = 8
 #: copies of the codeword from which capacity trusts the carrier count without embedding (a 1M
 #: mesh has ~450 copies of the longest codeword; eight trial embeddings would take ~12 s there)

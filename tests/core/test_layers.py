@@ -60,7 +60,6 @@ def marked() -> tuple[np.ndarray, np.ndarray, object]:
     return new, f, report
 
 
-
 @pytest.fixture(scope="module")
 def cropped(marked) -> tuple[np.ndarray, np.ndarray]:
     """The marked mesh with half its surface cut away (the frame moves, the labels stay)."""
