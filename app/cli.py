@@ -358,9 +358,9 @@ def _parser() -> argparse.ArgumentParser:
         group.add_argument("--key", help=f"watermark key (visible in `ps`; prefer --key-file or ${KEY_ENV})")
         group.add_argument("--key-file", help="file holding the key (one trailing newline is ignored)")
 
-    def method_option(p: argparse.ArgumentParser, default: str | None) -> None:
+    def method_option(p: argparse.ArgumentParser, default: str | None, unset: str) -> None:
         p.add_argument("--method", choices=api.METHODS, default=default,
-                       help=f"embedding method (default: {default or 'try both'})")
+                       help=f"embedding method (default: {default or unset})")
 
     def server_option(p: argparse.ArgumentParser) -> None:
         p.add_argument("--server", metavar="URL", default=os.environ.get(SERVER_ENV) or None,
@@ -375,7 +375,7 @@ def _parser() -> argparse.ArgumentParser:
                    "for standard output (the report then goes to standard error)")
     key_options(p)
     p.add_argument("--payload", help="bitstring of 1-256 '0'/'1' (default: 32 bits derived from the key)")
-    method_option(p, api.DEFAULT_METHOD)
+    method_option(p, None, api.AUTO_METHOD)
     p.add_argument("--strength", type=float, help="boundary margin, > 0 (engine default if omitted)")
     server_option(p)
     p.set_defaults(run=_embed)
@@ -384,7 +384,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("input", help=mesh_help)
     key_options(p)
     p.add_argument("--payload", help="expected payload, to get bit errors and a p-value")
-    method_option(p, None)
+    method_option(p, None, "try both")
     server_option(p)
     p.set_defaults(run=_detect)
 
@@ -392,7 +392,7 @@ def _parser() -> argparse.ArgumentParser:
                        "carriers an embedding with it will have)")
     p.add_argument("input", help=mesh_help)
     key_options(p)
-    method_option(p, api.DEFAULT_METHOD)
+    method_option(p, None, api.AUTO_METHOD)
     p.add_argument("--strength", type=float, help="boundary margin, > 0")
     server_option(p)
     p.set_defaults(run=_capacity)
@@ -404,7 +404,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--recipient", required=True, help="who the copy is for (any text)")
     p.add_argument("--asset-id", help="the asset's id (default: sha256: and the SHA-256 of the input)")
     key_options(p)
-    method_option(p, api.DEFAULT_METHOD)
+    method_option(p, api.DEFAULT_METHOD, "")
     p.add_argument("--strength", type=float, help="boundary margin, > 0 (engine default if omitted)")
     p.set_defaults(run=_copy)
 

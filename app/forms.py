@@ -44,7 +44,7 @@ from app.workers.tasks import Task
 from core.coding import MAX_PAYLOAD_BITS
 from core.errors import PayloadError
 from core.formats import FORMATS, spoken_list
-from core.options import DEFAULT_METHOD, DEFAULT_STRENGTH, MAX_STRENGTH, METHODS, Options
+from core.options import AUTO_METHOD, DEFAULT_METHOD, DEFAULT_STRENGTH, MAX_STRENGTH, METHODS, Options
 
 #: text fields of one form (key, payload, method, strength and a few unknown ones, which are ignored)
 MAX_FORM_FIELDS = 16
@@ -195,6 +195,8 @@ Strength = Annotated[float | None, Form(description=f"Boundary margin in (0, {MA
                                         f"{DEFAULT_STRENGTH:g} if omitted).",
                                         json_schema_extra=STRENGTH_SCHEMA)]
 _METHOD_SCHEMA = {"enum": list(METHODS)}
+ChosenMethod = Annotated[str | None, Form(description=f"Embedding method (default: {AUTO_METHOD}).",
+                                          json_schema_extra=_METHOD_SCHEMA)]
 
 
 async def embed_task(
@@ -202,7 +204,7 @@ async def embed_task(
     mesh: MeshFile,
     key: WatermarkKey,
     payload: Payload = None,
-    method: Annotated[str, Form(json_schema_extra=_METHOD_SCHEMA)] = DEFAULT_METHOD,
+    method: ChosenMethod = None,
     strength: Strength = None,
 ) -> Task:
     data = await mesh.read()
@@ -229,7 +231,7 @@ async def capacity_task(
     settings: SettingsDep,
     mesh: MeshFile,
     key: OptionalWatermarkKey,
-    method: Annotated[str, Form(json_schema_extra=_METHOD_SCHEMA)] = DEFAULT_METHOD,
+    method: ChosenMethod = None,
     strength: Strength = None,
 ) -> Task:
     """With the key, the carriers are exactly those an embedding with it will have."""

@@ -9,7 +9,7 @@ touches HTTP, paths, the environment or the network.
 
 from __future__ import annotations
 
-from core.options import DEFAULT_METHOD, METHODS, Options
+from core.options import AUTO_METHOD, DEFAULT_METHOD, METHODS, Options
 from core.pipeline import (
     capacity,
     capacity_file,
@@ -23,6 +23,7 @@ from core.pipeline import (
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
 
 __all__ = [
+    "AUTO_METHOD",
     "DEFAULT_METHOD",
     "METHODS",
     "CapacityReport",

@@ -21,7 +21,10 @@ from core.tolerances import TOL
 
 #: the embedding methods, by name (``planes``: Bors 2006 eqs. 15-20, ``ellipsoids``: eqs. 21-25)
 METHODS = ("ellipsoids", "planes")
+#: tried first when the caller names no method; the other one before a refusal (embed, and what
+#: capacity offers): AUTO_METHOD says so to users
 DEFAULT_METHOD = "ellipsoids"
+AUTO_METHOD = "ellipsoids, or planes where only planes carries the payload"
 DEFAULT_STRENGTH = TOL.strength
 MAX_STRENGTH = 1.0
 MAX_KEY_CHARS = 1024
@@ -101,8 +104,8 @@ class Options:
         Embed: the bits to hide (default: a 32-bit code derived from the key).  Detect: the
         expected payload, to get bit errors and a p-value.
     method : str, optional
-        Embed and capacity: :data:`DEFAULT_METHOD` when ``None``.  Detect: ``None`` tries every
-        method.
+        Embed and capacity: ``None`` leaves it to MeshMark (:data:`AUTO_METHOD`: :data:`DEFAULT_METHOD`
+        first, the other one where only it carries the payload).  Detect: ``None`` tries every method.
     strength : float, optional
         Margin of the carriers after embedding, a fraction of the local scale;
         :data:`DEFAULT_STRENGTH` when ``None``.
@@ -136,7 +139,7 @@ class Options:
 
     @property
     def embed_method(self) -> str:
-        """The method to embed with (or to measure capacity for)."""
+        """The method to embed with first (or to measure capacity for)."""
         return self.method or DEFAULT_METHOD
 
     @property

@@ -58,7 +58,7 @@ from core.geosync import (
 )
 from core.hashing import derive
 from core.mesh import Adjacency, adjacency, bbox_diagonal
-from core.options import DEFAULT_METHOD, METHODS, Options
+from core.options import METHODS, Options
 from core.parallel import SPLIT_FROM, beside, by_rows
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
 from core.resample import undo_subdivision
@@ -402,7 +402,7 @@ def _written(doc: MeshDocument, new: list[np.ndarray], rep: EmbedReport,
 
 
 def embed_mesh(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, *, payload: str | None = None,
-               method: str = DEFAULT_METHOD, strength: float | None = None) -> tuple[np.ndarray, EmbedReport]:
+               method: str | None = None, strength: float | None = None) -> tuple[np.ndarray, EmbedReport]:
     """Array-level embedding.
 
     Parameters
@@ -468,7 +468,7 @@ def embed(data: bytes, options: Options, *, filename: str | None = None, limits:
 
 
 def embed_file(data: bytes, key: str | bytes, *, filename: str | None = None, payload: str | None = None,
-               method: str = DEFAULT_METHOD, strength: float | None = None, limits: Limits | None = None,
+               method: str | None = None, strength: float | None = None, limits: Limits | None = None,
                progress: Progress | None = None) -> EmbeddedFile:
     """:func:`embed` with the options as keywords."""
     options = Options(key=key, payload=payload, method=method, strength=strength)
@@ -591,6 +591,16 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
             tried = (f"; the compact {COMPACT_BITS}-bit frame (CRC-32, no error correction) did not read "
                      "back either"
                      if fallback else "")
+            if options.method is None:
+                # the caller left the method to MeshMark: the other one, before any refusal (the
+                # Sink, a random 32-bit payload: planes for 50 of 50 keys, ellipsoids 4; core/README.md)
+                after = _scaled(report, Milestones.VERIFIED, Milestones.MEASURED)
+                for other in (m for m in METHODS if m != method):
+                    try:
+                        return _embed_doc(doc, replace(options, method=other), after, probe=False,
+                                          compact_rounds=compact_rounds, reslotted=reslotted, reslot=reslot)
+                    except CapacityError:
+                        tried += f"; method={other} did not read back either"
             hint = _what_fits(doc, options) if probe and (fallback or not too_few) else ""
             raise CapacityError(refusal[0] + tried + hint,
                                 carriers=refusal[1], needed=L)
@@ -861,7 +871,8 @@ def _what_fits(doc: MeshDocument, options: Options) -> str:
     same payload, else the longest shorter payload that embeds (each tried for real)."""
     method, s = options.embed_method, options.margin
     others = [m for m in METHODS if m != method]
-    tries = [(m, None if options.strength is None else s) for m in others]
+    # without a method asked, the others at this strength were tried before the refusal
+    tries = [(m, None if options.strength is None else s) for m in others if options.method is not None]
     tries += [(m, t) for t in PROBE_STRENGTHS if t < s for m in [method, *others]]
     for m, t in tries:
         if _embeds(doc, replace(options, method=m, strength=t)):
@@ -1030,12 +1041,30 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
     optionally, ``key``: with it the carriers are those an embedding with that key will have;
     without it, those of a fixed probe key).  ``max_payload_bits`` is verified: random payloads of
     that length really embed and read back with that key (:func:`_verified_payload`); the file
-    returned to no one."""
-    method, s = options.embed_method, options.margin
+    returned to no one.  Without a method, what an embedding without one carries
+    (:data:`~core.options.AUTO_METHOD`): the figures of :data:`~core.options.DEFAULT_METHOD`, or of the
+    other method where that one offers a longer payload."""
     report = progress or _no_progress
     report(0.0)
     doc = read_mesh(data, filename, limits)
     report(Milestones.READ)
+    first = options.embed_method
+    rep, bound = _capacity_doc(doc, replace(options, method=first), report)
+    if options.method is None and rep.max_payload_bits < bound:
+        # the trials cut the payload below the carrier count's bound: the other method may carry more
+        # (the Duck: ellipsoids 48 bits, planes 76-116; bench/results/capacity_keys.md)
+        for other in (m for m in METHODS if m != first):
+            alt, _ = _capacity_doc(doc, replace(options, method=other), _no_progress)
+            if alt.max_payload_bits > rep.max_payload_bits:
+                rep = alt
+    report(1.0)
+    return rep
+
+
+def _capacity_doc(doc: MeshDocument, options: Options, report: Progress) -> tuple[CapacityReport, int]:
+    """:func:`capacity` of a read file with ``options.method``, and the carrier count's bound on the
+    payload (before the trials)."""
+    method, s = options.embed_method, options.margin
     parts = _usable_parts(doc)
     carriers = 0
     new = [p.vertices.copy() for p in doc.parts]
@@ -1064,6 +1093,7 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
     max_bits = _largest_payload(carriers / CAPACITY_MARGIN)
     if carriers < COMPACT_BELOW:
         max_bits = max(max_bits, COMPACT_MAX_PAYLOAD)  # the compact frame's, when it embeds
+    bound = max_bits
     if carriers < CAPACITY_SURE * codeword_length(max_bits or None):
         held: Callable[[bool], int] | None = None
         # the model needs carriers that stay where they are: no geometric layer (at the shortest
@@ -1077,12 +1107,11 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
     report(Milestones.VERIFIED)
     by_copies = {str(c): _largest_payload(carriers / c) for c in (1, 2, 4, 8, 16)}
     _, rms, mx, _ = _distortion(doc, new, {}, hausdorff=False)
-    report(1.0)
     return CapacityReport(method=method, strength=s, carriers=carriers, max_payload_bits=max_bits,
                           copies_of_default=round(carriers / codeword_length(None), 3),
                           codeword_bits_default=codeword_length(None), payload_bits_by_copies=by_copies,
                           expected_rms_displacement=rms, expected_max_displacement=mx, parts=info,
-                          geometric_carriers=geometric)
+                          geometric_carriers=geometric), bound
 
 
 #: payload lengths capacity verifies, longest first, below the carrier-count bound
@@ -1189,7 +1218,7 @@ def _verified_payload(doc: MeshDocument, options: Options, bound: int,
     return 0
 
 
-def capacity_file(data: bytes, *, filename: str | None = None, method: str = DEFAULT_METHOD,
+def capacity_file(data: bytes, *, filename: str | None = None, method: str | None = None,
                   strength: float | None = None, limits: Limits | None = None) -> CapacityReport:
     """:func:`capacity` with the options as keywords."""
     options = Options(method=method, strength=strength)

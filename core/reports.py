@@ -25,6 +25,7 @@ class _Report:
 class EmbedReport(_Report):
     """What an embedding did.  Distances are relative to the bounding-box diagonal."""
 
+    #: the method used (asked, or chosen when none was: :data:`core.options.AUTO_METHOD`)
     method: str
     strength: float
     payload_bits: int          # payload length (32 for the key-derived default code)
@@ -81,6 +82,7 @@ class DetectResult(_Report):
 
 @dataclass(frozen=True)
 class CapacityReport(_Report):
+    #: the method of these figures (asked, or when none was, the one with the longer payload)
     method: str
     strength: float
     carriers: int

@@ -34,12 +34,20 @@ def test_embed_then_detect_round_trip(client, name, payload):
 def test_a_mesh_too_coarse_for_the_method_is_refused_with_what_fits(client):
     """Spot (2,930 vertices) with ellipsoids needs moves past the displacement ceiling for a 192-bit
     payload under this key (128 bits fit since the convolutional code, 48 with Hamming(7,4) before):
-    422, and the detail names the method that fits, which then embeds."""
+    422, and the detail names the method that fits, which then embeds.  Without a method the service
+    takes that one itself: the file reads back and its report and header say planes."""
     data = shared_mesh("spot.obj")
     payload = "1011001110001111" * 12
-    body = assert_problem(embed(client, "spot.obj", data, payload=payload), 422, "too-little-capacity")
+    body = assert_problem(embed(client, "spot.obj", data, payload=payload, method="ellipsoids"), 422,
+                          "too-little-capacity")
     assert "ceiling" in body["detail"] and "method=planes" in body["detail"], body
     assert embed(client, "spot.obj", data, payload=payload, method="planes").status_code == 200
+    chosen = embed(client, "spot.obj", data, payload=payload)
+    assert chosen.status_code == 200, chosen.text
+    assert chosen.headers["x-meshmark-method"] == "planes"
+    assert json.loads(chosen.headers["x-meshmark-report"])["method"] == "planes"
+    found = detect(client, "spot.obj", chosen.content, payload=payload).json()
+    assert found["payload"] == payload and found["method"] == "planes", found
 
 
 def test_binary_stl_keeps_its_size(client):

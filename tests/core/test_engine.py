@@ -79,6 +79,28 @@ def test_regular_meshes_carry_32_bits(shape: str, method: str) -> None:
     assert res2.detected and res2.payload == payload
 
 
+def test_without_a_method_the_other_one_is_taken_before_a_refusal() -> None:
+    """No method asked: ellipsoids where they carry the payload (the same file as asking for them),
+    planes where only planes does (the same file as asking for planes), and a refusal only when
+    neither does, saying so."""
+    cube = trimesh.creation.box()
+    for _ in range(5):
+        cube = cube.subdivide()
+    payload = "10110011100011110000101011001010"
+    with pytest.raises(CapacityError, match="reads back with method=planes"):
+        embed_mesh(cube.vertices, cube.faces, "regular", payload=payload, method="ellipsoids")
+    chosen, report = embed_mesh(cube.vertices, cube.faces, "regular", payload=payload)
+    planes, _ = embed_mesh(cube.vertices, cube.faces, "regular", payload=payload, method="planes")
+    assert report.method == "planes" and np.array_equal(chosen, planes)
+    assert detect_mesh([(chosen, cube.faces)], "regular").payload == payload
+    v, f = irregular_sphere(3000, 5)
+    chosen, report = embed_mesh(v, f, "k", payload=payload)
+    assert report.method == "ellipsoids"
+    assert np.array_equal(chosen, embed_mesh(v, f, "k", payload=payload, method="ellipsoids")[0])
+    with pytest.raises(CapacityError, match="method=planes did not read back either"):
+        embed_mesh(*irregular_sphere(200, 2), "k", payload="1" * 256)
+
+
 def test_wrong_key_and_unmarked_are_not_detected() -> None:
     v, f = irregular_sphere(3000, 7)
     marked, _ = embed_mesh(v, f, "right key", payload="1" * 16)
