@@ -24,12 +24,14 @@ key_st = st.text(st.characters(codec="utf-8", exclude_categories=["Cc", "Cf", "Z
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 10_000), payload=payload_st, key=key_st, method=st.sampled_from(METHODS))
-def test_embed_detect_exact_and_invariant(seed: int, payload: str, key: str, method: str) -> None:
+@given(seed=st.integers(0, 10_000), payload=payload_st, key=key_st,
+       method=st.sampled_from([*METHODS, None]))
+def test_embed_detect_exact_and_invariant(seed: int, payload: str, key: str, method: str | None) -> None:
     # 6000 vertices: a 64-bit payload with ellipsoids fits the displacement ceiling there
     v, f = irregular_sphere(6000, seed)
     marked, report = embed_mesh(v, f, key, payload=payload, method=method)
     assert report.carriers >= report.codeword_bits
+    assert report.method == (method or "ellipsoids")  # ellipsoids carry it: no method means them
     assert np.count_nonzero(np.any(marked != v, axis=1)) == report.vertices_moved
     res = detect_mesh([(marked, f)], key)
     assert res.detected and res.crc_ok and res.payload == payload
