@@ -358,7 +358,7 @@ def _parser() -> argparse.ArgumentParser:
         group.add_argument("--key", help=f"watermark key (visible in `ps`; prefer --key-file or ${KEY_ENV})")
         group.add_argument("--key-file", help="file holding the key (one trailing newline is ignored)")
 
-    def method_option(p: argparse.ArgumentParser, default: str | None, unset: str) -> None:
+    def method_option(p: argparse.ArgumentParser, default: str | None, unset: str = "try both") -> None:
         p.add_argument("--method", choices=api.METHODS, default=default,
                        help=f"embedding method (default: {default or unset})")
 
@@ -384,7 +384,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("input", help=mesh_help)
     key_options(p)
     p.add_argument("--payload", help="expected payload, to get bit errors and a p-value")
-    method_option(p, None, "try both")
+    method_option(p, None)
     server_option(p)
     p.set_defaults(run=_detect)
 
@@ -404,7 +404,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--recipient", required=True, help="who the copy is for (any text)")
     p.add_argument("--asset-id", help="the asset's id (default: sha256: and the SHA-256 of the input)")
     key_options(p)
-    method_option(p, api.DEFAULT_METHOD, "")
+    method_option(p, api.DEFAULT_METHOD)
     p.add_argument("--strength", type=float, help="boundary margin, > 0 (engine default if omitted)")
     p.set_defaults(run=_copy)
 

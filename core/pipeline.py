@@ -612,7 +612,7 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
             if options.method is None:
                 # the caller left the method to MeshMark: the other one, before any refusal (the
                 # Sink, a random 32-bit payload: planes for 50 of 50 keys, ellipsoids 4; core/README.md)
-                for other in (m for m in METHODS if m != method):
+                for other in _other_methods(method):
                     try:
                         return _embed_doc(doc, replace(options, method=other), after, probe=False,
                                           compact_rounds=compact_rounds, reslotted=reslotted, reslot=reslot,
@@ -896,6 +896,11 @@ def _embed_compact(meshes: list[tuple[np.ndarray, np.ndarray]], prepared: list[t
     return None
 
 
+def _other_methods(method: str) -> list[str]:
+    """The methods other than ``method``, in :data:`~core.options.METHODS` order."""
+    return [m for m in METHODS if m != method]
+
+
 #: lower strengths a refusal tries (fewer carriers over the ceiling, less margin against attacks)
 PROBE_STRENGTHS = (0.05, 0.03)
 
@@ -904,7 +909,7 @@ def _what_fits(doc: MeshDocument, options: Options) -> str:
     """What a refused embedding could use instead: the other method or a lower strength with the
     same payload, else the longest shorter payload that embeds (each tried for real)."""
     method, s = options.embed_method, options.margin
-    others = [m for m in METHODS if m != method]
+    others = _other_methods(method)
     # without a method asked, the others at this strength were tried before the refusal
     tries = [(m, None if options.strength is None else s) for m in others if options.method is not None]
     tries += [(m, t) for t in PROBE_STRENGTHS if t < s for m in [method, *others]]
@@ -1089,7 +1094,7 @@ def capacity(data: bytes, options: Options, *, filename: str | None = None,
     if options.method is None and rep.max_payload_bits < bound:
         # the trials cut the payload below the carrier count's bound: the other method may carry more
         # (the Duck: ellipsoids 48 bits, planes 76-116; bench/results/capacity_keys.md)
-        for other in (m for m in METHODS if m != first):
+        for other in _other_methods(first):
             alt, _ = _capacity_doc(doc, replace(options, method=other), _no_progress)
             if alt.max_payload_bits > rep.max_payload_bits:
                 rep = alt
