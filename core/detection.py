@@ -349,7 +349,11 @@ BOTH, CONNECTIVITY, GEOMETRY = "both", "connectivity", "geometry"
 #: what read every crop of the Beast and the Ogre that it read at all), and reported as the
 #: connectivity layer
 WIDER, NARROWER = "wider", "narrower"
-RELABELLED = (WIDER, NARROWER)
+#: the connectivity carriers with those near a boundary muted (:func:`core.pipeline._interior`): a
+#: crop's cut changes the labels within the refinement's reach of it, so that those carriers read
+#: their bits in the wrong slots; read, and reported, as the relabelled views are
+INTERIOR = "interior"
+RELABELLED = (WIDER, NARROWER, INTERIOR)
 
 
 def _reported(layer: str) -> str:

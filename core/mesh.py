@@ -105,6 +105,14 @@ class Adjacency:
         n = len(self.degree)
         return np.concatenate(by_chunks(chunk, n, CHUNK_ROWS)) if n else np.zeros(0, values.dtype)
 
+    def within(self, seeds: np.ndarray, rings: int) -> np.ndarray:
+        """(n,) bool: the vertices at most ``rings`` edges from a vertex of the mask ``seeds``
+        (one sparse product per ring)."""
+        near = np.asarray(seeds, bool).copy()
+        for _ in range(int(rings)):
+            near |= self.ring_sum(near.astype(np.float64)) > 0
+        return near
+
     def ring_entries(self, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Positions in ``indices`` of the neighbours of the vertices ``which``, concatenated.
 

@@ -174,18 +174,26 @@ def test_a_piece_whose_labels_go_a_step_further_reads_one_step_narrower(cropped,
         assert not detect_mesh([(cv, cf)], KEY, payload=PAYLOAD).detected
 
 
-def test_the_wider_view_counts_in_the_false_positive_figure(cropped, monkeypatch) -> None:
-    """Made only when the others do not read, the wider view still counts in every answer's
-    union bound: one candidate per method (the embedder's decoding), 2 beside the 26 of the
-    others with both methods."""
+def test_the_wider_and_interior_views_count_in_the_false_positive_figure(cropped, monkeypatch) -> None:
+    """Made only when the others do not read, the wider view and the interior one (the piece has a
+    boundary) still count in every answer's union bound: one candidate per method each (the
+    embedder's decoding), 2 + 2 beside the 26 of the others with both methods."""
     cv, cf = cropped
     res = detect_mesh([(cv, cf)], KEY, payload=PAYLOAD)
-    with monkeypatch.context() as m:
-        m.setattr(pipeline, "has_step", lambda labels, step: False)
-        alone = detect_mesh([(cv, cf)], KEY, payload=PAYLOAD)
-    assert res.detected and alone.detected
-    ratio = res.false_positive_probability / alone.false_positive_probability
-    assert ratio == pytest.approx(28 / 26, rel=1e-6)
+    without = {}
+    for name, off in (("wider", ["has_step"]), ("interior", ["_interior_view"]),
+                      ("both", ["has_step", "_interior_view"])):
+        with monkeypatch.context() as m:
+            if "has_step" in off:
+                m.setattr(pipeline, "has_step", lambda labels, step: False)
+            if "_interior_view" in off:
+                m.setattr(pipeline, "_interior_view", lambda layers: [])
+            without[name] = detect_mesh([(cv, cf)], KEY, payload=PAYLOAD)
+    assert res.detected and all(r.detected for r in without.values())
+    fpp = res.false_positive_probability
+    assert fpp / without["wider"].false_positive_probability == pytest.approx(30 / 28, rel=1e-6)
+    assert fpp / without["interior"].false_positive_probability == pytest.approx(30 / 28, rel=1e-6)
+    assert fpp / without["both"].false_positive_probability == pytest.approx(30 / 26, rel=1e-6)
 
 
 @pytest.mark.parametrize("split", [False, True])
@@ -250,3 +258,31 @@ def test_a_cell_that_changes_hands_after_the_follow_keeps_both_vertices() -> Non
     assert not st.reselect()
     assert c in st.view.carriers and set(taker) <= set(st.geo.carriers.tolist())
     assert set(first) <= set(st.geo.carriers.tolist())
+
+
+def test_the_interior_view_keeps_the_carriers_whose_labels_the_cut_left_alone() -> None:
+    """A cut changes the labels up to the refinement's rounds from it, no further: in a cropped
+    piece of a closed mesh, every carrier the interior view keeps voting has the label its vertex
+    has in the whole mesh, and the view mutes exactly the carriers that near the boundary.  A closed
+    mesh gets no interior view."""
+    v, f = _lopsided(8000)
+    whole = vertex_labels(v, adjacency(f, len(v)))
+    assert pipeline._interior_view(pipeline._layers(pipeline._ArrayDoc([(v, f)]), [0], KEY, ["planes"])) == []
+    for axis, cut in ((0, 0.2), (1, -0.3), (2, 0.0)):
+        keep = v[f].mean(axis=1)[:, axis] < cut
+        used = np.unique(f[keep])
+        cv, cf = _drop_unreferenced(v, f[keep])
+        layers = pipeline._layers(pipeline._ArrayDoc([(cv, cf)]), [0], KEY, ["planes", "ellipsoids"])
+        adj, lab = layers.adjs[0], layers.labels[0]
+        assert lab.rounds == whole.rounds and adj.boundary.any()
+        (view,) = [made() for layer, made in pipeline._interior_view(layers)]
+        near = adj.within(adj.boundary, lab.rounds)
+        for m in ("planes", "ellipsoids"):
+            (a,), (b,) = layers.local[m], view[m]
+            assert np.array_equal(b.muted, near[a.carriers]) and np.array_equal(b.z, a.z)
+            kept = a.carriers[~b.muted]
+            assert 0 < len(kept) < len(a.carriers)
+            assert np.array_equal(lab.labels[kept], whole.labels[used[kept]])
+            # the muted ones include carriers whose labels the cut changed
+            gone = a.carriers[b.muted]
+            assert (lab.labels[gone] != whole.labels[used[gone]]).any()

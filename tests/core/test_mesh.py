@@ -115,3 +115,24 @@ def test_ring_sum_adds_the_neighbours_in_the_order_bincount_does() -> None:
     assert np.array_equal(adj.ring_sum(cols), np.stack([adj.ring_sum(c) for c in cols.T], axis=1))
     # a vertex of no face sums to 0
     assert adjacency(f, len(v) + 1).ring_sum(np.append(x, 1.0))[-1] == 0.0
+
+
+def test_within_is_the_ring_distance_from_the_seeds() -> None:
+    """``Adjacency.within(seeds, k)`` is every vertex at most ``k`` edges from a seed (graph
+    distance by scipy's breadth-first search), for k = 0..5 and seeds anywhere or nowhere."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import shortest_path
+
+    from tests.core.meshes import irregular_sphere
+
+    v, f = irregular_sphere(800, 3)
+    adj = adjacency(f, len(v))
+    graph = csr_matrix((np.ones(len(adj.indices)), adj.indices, adj.indptr), shape=(len(v), len(v)))
+    rng = np.random.default_rng(1)
+    for n_seeds in (0, 1, 5):
+        seeds = np.zeros(len(v), bool)
+        seeds[rng.choice(len(v), n_seeds, replace=False)] = True
+        dist = shortest_path(graph, unweighted=True, indices=np.flatnonzero(seeds)).min(axis=0) \
+            if n_seeds else np.full(len(v), np.inf)
+        for k in range(6):
+            assert np.array_equal(adj.within(seeds, k), dist <= k)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from core import detection
+from core import detection, pipeline
 from core.api import Options, capacity, capacity_file, detect_file, detect_mesh, embed_file
 from core.coding import codeword_length, key_code
 from core.errors import CapacityError
@@ -194,8 +194,9 @@ def test_sink_carries_a_32_bit_payload_of_the_users_choosing(key: str, method: s
         res = detect_file(marked.data, key, filename="sink.3ds")
         assert res.detected and res.crc_ok and res.payload == payload and res.method == marked.report.method
         # 6 variants of the connectivity view per method, 1 each of the wider and narrower ones (the
-        # Sink's parts use several round counts): 3.8e-7 before those two, 5.7e-7 with them
-        assert res.false_positive_probability < 6e-7
+        # Sink's parts use several round counts) and of the interior one (they have boundaries):
+        # 3.8e-7 before the first two, 5.7e-7 with them, 6.6e-7 with the third
+        assert res.false_positive_probability < 7e-7
         assert not detect_file(marked.data, key + "?", filename="sink.3ds").detected
 
 
@@ -284,3 +285,38 @@ def test_zero_mean_errors_are_read_by_the_signed_variant(name: str, method: str,
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(detection, "VARIANTS", without)
         assert not detect_mesh([(v, part.faces)], key, method=method).detected
+
+
+def _cut_piece(v: np.ndarray, f: np.ndarray, keep: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The faces on one side of a plane across a random direction, ``keep`` of them, without the
+    vertices no face uses (a crop)."""
+    d = np.random.default_rng(seed).normal(size=3)
+    s = v[f].mean(axis=1) @ (d / np.linalg.norm(d))
+    faces = f[s >= np.quantile(s, 1.0 - keep)]
+    used = np.unique(faces)
+    remap = np.full(len(v), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return v[used], remap[faces]
+
+
+def test_crops_of_a_mesh_marked_near_its_budget_read_without_the_cut(monkeypatch) -> None:
+    """The rocker arm marked with ellipsoids (at the RMS budget, 72 % of its carriers read their
+    bits) cut to a quarter: the carriers within 3 rings of the cut lost their labels and vote at
+    random; the interior view, without them, reads crops that the other views do not (4 of these
+    10 without it, 8 with it; the bench engine table's crops, 3 of 10 and 7 of 10)."""
+    data = shared_mesh_path("rocker-arm.obj").read_bytes()
+    marked = embed_file(data, "meshmark-issue14-key", filename="rocker-arm.obj", payload=PAYLOAD64[:32],
+                        method="ellipsoids")
+    (v, f), = [(p.vertices, p.faces) for p in read_mesh(marked.data, "rocker-arm.obj").parts]
+    found = {True: 0, False: 0}
+    for seed in range(10):
+        piece = _cut_piece(v, f, 0.25, seed)
+        for interior in (True, False):
+            with monkeypatch.context() as m:
+                if not interior:
+                    m.setattr(pipeline, "_interior_view", lambda layers: [])
+                res = detect_mesh([piece], "meshmark-issue14-key", method="ellipsoids")
+            if res.detected:
+                assert res.payload == PAYLOAD64[:32] and res.crc_ok and res.layer == "connectivity"
+                found[interior] += 1
+    assert found[True] >= found[False] + 2
