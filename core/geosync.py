@@ -82,8 +82,13 @@ CARRIER_SHARE = 0.09
 #: The bunny, horse, armadillo and rocker arm are held by the share either way; the dragon
 #: (2757 -> 4187), turbine blade (3609 -> 8427) and beetle (1539 -> 1726) get finer rungs
 TARGET_CELLS = 131072
-#: rungs the detector tries below and above its own estimate (3 below: up to 65 % of the vertices gone)
-RUNGS_BELOW, RUNGS_ABOVE = 3, 1
+#: rungs the detector tries below and above its own estimate.  The carriers a rung gets hardly
+#: depend on it where the share binds (Beast's marked file: 2,558 at rung 10, 2,867 at rung 5), so
+#: when a simplification halves the vertices, and with them the share's limit, the estimate moves
+#: far: quadric 50 % took Beast's from the embedder's rung 9 to 14 and Ogre's from 6 to 11 (3 below,
+#: as until 2026-12-06, read neither; 6 below read both, with both methods, and Beast's quadric 30 %
+#: with planes).  Never below the area's rung, where large meshes are: they try no more rungs
+RUNGS_BELOW, RUNGS_ABOVE = 6, 1
 #: valences a geometric carrier may have (a simplification changes valences: looser than core.sync's)
 MIN_VALENCE, MAX_VALENCE = 3, 24
 #: a vertex competes for its cell within BALL cells of the centre, and the NEAREST such vertices in

@@ -9,8 +9,9 @@ from __future__ import annotations
 import meshoptimizer
 import numpy as np
 import pytest
+from scipy.spatial import ConvexHull
 
-from core import pipeline, sync
+from core import geosync, pipeline, sync
 from core.analysis import analyse_geometric, statistic
 from core.api import detect_mesh, embed_mesh
 from core.coding import encode
@@ -50,6 +51,24 @@ def _lopsided(n: int = 20000) -> tuple[np.ndarray, np.ndarray]:
     v, f = irregular_sphere(n, 7)
     bump = 0.3 * np.exp(-8.0 * ((v - [0.8, 0.3, 0.0]) ** 2).sum(axis=1))[:, None]
     return v * np.array([1.6, 1.0, 0.7]) + bump, f
+
+
+def _uneven(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A closed lopsided surface of ``n`` vertices, 90 % of them in a cap of a tenth of its area (a
+    scan's detailed face and its plain back): where the geometric layer's cells are, the carriers a
+    cell size gets hardly depend on it."""
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(n, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    k = int(0.9 * n)
+    z, phi = rng.uniform(0.85, 1.0, k), rng.uniform(0.0, 2.0 * np.pi, k)
+    p[:k] = np.stack([np.sqrt(1.0 - z * z) * np.cos(phi), np.sqrt(1.0 - z * z) * np.sin(phi), z], axis=1)
+    f = ConvexHull(p).simplices.copy()
+    normal = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])
+    flip = (normal * p[f].mean(axis=1)).sum(axis=1) < 0
+    f[flip] = f[flip][:, ::-1]
+    r = 1.0 + 0.05 * np.sin(3 * p[:, 0]) * np.cos(2 * p[:, 1]) + 0.2 * p[:, 0] ** 3 + 0.1 * p[:, 1]
+    return p * (r[:, None] * np.array([1.5, 1.0, 0.8])), f
 
 
 @pytest.fixture(scope="module")
@@ -286,3 +305,21 @@ def test_the_interior_view_keeps_the_carriers_whose_labels_the_cut_left_alone() 
             # the muted ones include carriers whose labels the cut changed
             gone = a.carriers[b.muted]
             assert (lab.labels[gone] != whole.labels[used[gone]]).any()
+
+
+def test_half_the_vertices_gone_reads_at_a_rung_far_below_the_detectors_own(monkeypatch) -> None:
+    """Quadric simplification by half of :func:`_uneven`: the detector's rung, from the vertices
+    left, is more than 3 rungs above the embedder's (as quadric 50 % took Beast's and Ogre's 5 above),
+    and the geometric layer reads there; the 3 rungs below that the detector tried until stop 35 do
+    not reach it."""
+    import fast_simplification
+
+    v, f = _uneven(20000, 3)
+    new, report = embed_mesh(v, f, KEY, payload=PAYLOAD, method="planes")
+    assert "geometry" in report.layers
+    sv, sf = fast_simplification.simplify(new, f.astype(np.int32), target_reduction=0.5)
+    sf = sf.astype(np.int64)
+    res = detect_mesh([(sv, sf)], KEY, payload=PAYLOAD)
+    assert res.detected and res.crc_ok and res.payload == PAYLOAD and res.layer == "geometry"
+    monkeypatch.setattr(geosync, "RUNGS_BELOW", 3)
+    assert not detect_mesh([(sv, sf)], KEY, payload=PAYLOAD).detected
