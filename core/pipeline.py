@@ -235,7 +235,7 @@ def _interior(layers: _Layers) -> dict[str, list[Analysis]]:
     muted (a cut changes every label that far from it, and those carriers then read their bits in
     other slots), or empty when none is.  Cropped pieces of 25 % of the rocker arm marked with
     ellipsoids: the carriers within 3 rings of the cut kept none of their labels and read 0.48-0.53
-    right, those 4 rings away kept 73 % (core/README.md, "Crops")."""
+    right, those 4 rings away kept 73 % (core/README.md, section 2, "Carriers next to a cut")."""
     near = [adj.within(adj.boundary, lab.rounds) for adj, lab in zip(layers.adjs, layers.labels, strict=True)]
     out: dict[str, list[Analysis]] = {}
     for m, analyses in layers.local.items():
