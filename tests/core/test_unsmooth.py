@@ -171,6 +171,8 @@ def test_bunny_smoothed_30_times(method: str) -> None:
     part = read_mesh(out.data, path.name).parts[0]
     res = detect_file(_ply(_smooth(part.vertices, part.faces, 30), part.faces), key, filename="s.ply")
     assert res.detected and res.payload == PAYLOAD and res.unsmoothed is not None
-    assert res.false_positive_probability < 2e-6
+    # 1.99e-6 before the interior view (2ccab0d), 2.14e-6 with it: the bunny has holes, so the detector
+    # has one more view to try and the union bound counts it (30/28 of the views)
+    assert res.false_positive_probability < 3e-6
     if method == "planes":
         assert res.unsmoothed == 30  # the exact inverse: the carriers agree best there
