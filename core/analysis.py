@@ -366,6 +366,44 @@ def analyse_geometric(vertices: np.ndarray, adj: Adjacency, key: str | bytes, me
     return dict.fromkeys(methods, got)
 
 
+def geometric_read(known: Sequence[Analysis], vertices: np.ndarray, adj: Adjacency,
+                   chosen: tuple[np.ndarray, np.ndarray], tol: Tolerances = TOL) -> Analysis:
+    """:func:`analyse_geometric` at the carriers ``chosen`` (vertices, cell hashes), equal to it array
+    for array, reading only the carriers that no analysis of ``known`` holds.
+
+    ``known``: geometric analyses whose every row is current at ``vertices`` (the boundary from the
+    present positions of the carrier's neighbours, the statistic from its own), as the embedder keeps
+    its own (:meth:`core.embedding._Mesh.round` reads again what a move changes).  A row taken from
+    them is tested again for a surface (a neighbour's move may have flattened its ring), and the scale
+    test (against the median of every kept carrier's) is made over the whole choice, as
+    :func:`carrier_statistics` does."""
+    v = np.asarray(vertices, np.float64)
+    sel, hashes = np.asarray(chosen[0], np.int64), np.asarray(chosen[1], np.uint64)
+    known = [a for a in known if len(a.carriers)]
+    if not known or not len(sel) or GEOMETRIC_METHOD != "planes":
+        # (other moments than the ring's are kept for another statistic: the surface test needs these)
+        return carrier_statistics(v, adj, sel, hashes, [GEOMETRIC_METHOD], False, True, tol)[GEOMETRIC_METHOD]
+    k = len(sel)
+    mu, axes, lam = np.empty((k, 3)), np.empty((k, 3, 3)), np.empty((k, 3))
+    scale, z = np.empty(k), np.empty(k)
+    have = np.zeros(k, bool)
+    for a in known:
+        order = np.argsort(a.carriers)
+        at = order[np.minimum(np.searchsorted(a.carriers[order], sel), len(order) - 1)]
+        # (a scale below 1e-300 was read with a floor in the embedder's re-reading: read it afresh)
+        hit = ~have & (a.carriers[at] == sel) & (a.scale[at] >= 1e-300)
+        src = at[hit]
+        mu[hit], axes[hit], lam[hit] = a.mu[src], a.axes[src], a.lam[src]
+        scale[hit], z[hit] = a.scale[src], a.z[src]
+        have |= hit
+    fresh = np.flatnonzero(~have)
+    mu[fresh], axes[fresh], lam[fresh], scale[fresh] = ring_boundaries(v, adj, sel[fresh])
+    ok = _within_scale(scale, _surface(lam, scale, tol), len(v), tol)
+    read = fresh[ok[fresh]]
+    z[read] = statistic(GEOMETRIC_METHOD, v[sel[read]], mu[read], axes[read], lam[read], scale[read], tol)
+    return Analysis(sel[ok], hashes[ok], z[ok], mu[ok], axes[ok], lam[ok], scale[ok], False, True)
+
+
 def analyse(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, method: str,
             adj: Adjacency | None = None, labels: Labels | None = None,
             tol: Tolerances = TOL, prio: np.ndarray | None = None) -> Analysis:

@@ -20,7 +20,7 @@ from core.analysis import (
     SIGNED_FROM,
     Analysis,
     analyse,
-    analyse_geometric,
+    geometric_read,
     keyed_sides,
     method_moments,
     plane_width,
@@ -33,7 +33,7 @@ from core.analysis import (
     statistic,
     tied_pairs,
 )
-from core.geosync import Placement, follow
+from core.geosync import Placement, Rings, follow, geometric_carriers
 from core.mesh import Adjacency, bbox_diagonal
 from core.parallel import SPLIT_FROM, beside, by_rows
 from core.slots import assign_slots, ranked_by_default
@@ -455,6 +455,9 @@ class _Mesh:
                  strength: float, selection: Selection | None = None) -> None:
         self.v0, self.v, self.faces, self.adj, self.labels = v0, v0.copy(), faces, adj, labels
         self.key, self.method, self.tol, self.placement, self.diag = key, method, tol, placement, diagonal
+        #: the least-variance axes of the rings the geometric choices compared (:class:`Rings`), kept
+        #: from one choice to the next but for the rings a move changed (:meth:`_reread`)
+        self.rings = Rings(self.v, adj)
         if selection is None:
             prio = priorities(v0, adj, labels, key)
             selection = Selection(prio, analyse(v0, faces, key, method, adj=adj, labels=labels, tol=tol,
@@ -504,13 +507,17 @@ class _Mesh:
             self._tied = self._tied.result()
         return self._tied
 
-    def _geometric(self, chosen: tuple[np.ndarray, np.ndarray] | None = None) -> Analysis | None:
+    def _geometric(self, chosen: tuple[np.ndarray, np.ndarray] | None = None,
+                   known: Sequence[Analysis] = ()) -> Analysis | None:
         """The geometric carriers at the current positions (``chosen``: the placement's own, when
-        they are known to be those) and their statistics."""
-        if self.placement is None:
+        they are known to be those) and their statistics, the rows of ``known`` (analyses kept
+        current at these positions) taken from there (:func:`~core.analysis.geometric_read`)."""
+        p = self.placement
+        if p is None:
             return None
-        got = analyse_geometric(self.v, self.adj, self.key, [self.method], self.placement, self.tol, chosen)
-        return got[self.method]
+        if chosen is None:
+            chosen = geometric_carriers(self.v, self.adj, p.frame, p.axes, p.rung, self.key, self.rings)
+        return geometric_read(known, self.v, self.adj, chosen, self.tol)
 
     def round(self, r: int, codeword: np.ndarray, local_slots: np.ndarray, rms_budget: float | None,
               quantize: Callable[[np.ndarray, np.ndarray], np.ndarray] | None) -> bool:
@@ -626,6 +633,7 @@ class _Mesh:
             self._own(self.local, moved, near)
         if self.geo is not None:
             self._own(self.geo, moved, near)
+            self.rings.forget(near)
 
     def _own(self, a: Analysis, moved: np.ndarray, near: np.ndarray | None) -> None:
         """Re-read the carriers of ``a`` that moved, and the boundaries of those next to a moved
@@ -654,12 +662,12 @@ class _Mesh:
         if not self.followed and np.any(self.v != self.v0):
             self.placement = follow(self.placement, self.v, self.faces)
             self.followed = True
-            now = self._geometric()
+            now = self._geometric(known=[self.geo])
             assert now is not None
             changed = len(np.setxor1d(now.carriers, self.geo.carriers, assume_unique=True))
             self.geo = self.view = now
             return changed > SETTLED * max(len(now.carriers), 1)
-        now = self._geometric()
+        now = self._geometric(known=[self.geo])
         assert now is not None
         self.view = now
         new = int(np.count_nonzero(~np.isin(now.carriers, self.geo.carriers, assume_unique=True)))
@@ -667,7 +675,7 @@ class _Mesh:
         carriers = np.concatenate([now.carriers, self.geo.carriers[held]])
         hashes = np.concatenate([now.slot_hash, self.geo.slot_hash[held]])
         order = np.argsort(carriers)
-        self.geo = self._geometric((carriers[order], hashes[order]))
+        self.geo = self._geometric((carriers[order], hashes[order]), known=[now, self.geo])
         return new > SETTLED * max(len(now.carriers), 1)
 
 

@@ -140,6 +140,12 @@ class Rings:
             self._known[missing] = True
         return self._least[which]
 
+    def forget(self, moved_rings: np.ndarray) -> None:
+        """Drop the axes of the vertices of the mask ``moved_rings`` (a neighbour of theirs moved: the
+        positions are an array changed in place, as the embedder's are); asked again, they are made
+        at the new positions."""
+        self._known &= ~np.asarray(moved_rings, bool)
+
 
 @dataclass(frozen=True)
 class SurfaceFrame:

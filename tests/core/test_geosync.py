@@ -206,3 +206,24 @@ def test_kept_rings_are_the_rings_of_any_set_of_vertices() -> None:
     rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
     origin = rng.normal(size=3)
     assert G.in_frame(v, origin, rot) == pytest.approx((v - origin) @ rot.T, abs=1e-12)
+
+
+def test_kept_rings_follow_positions_changed_in_place_once_forgotten() -> None:
+    """The embedder keeps its Rings across rounds and forgets the rings of its moved vertices'
+    neighbours (``Rings.forget``): what it then reads are the rings at the new positions."""
+    v, f = irregular_sphere(3000, 5)
+    adj = adjacency(f, len(v))
+    rings = G.Rings(v, adj)
+    everything = np.arange(len(v))
+    before = rings.least(everything).copy()
+    rng = np.random.default_rng(2)
+    moved = rng.choice(len(v), 50, replace=False)
+    v[moved] += rng.normal(0.0, 0.02, (50, 3))  # in place: the array the kept rings read
+    near = np.zeros(len(v), bool)
+    near[adj.indices[adj.ring_entries(moved)[1]]] = True
+    fresh = G.Rings(v, adj).least(everything)
+    stale = rings.least(everything)
+    assert not np.array_equal(stale, fresh)  # unforgotten, they are the old rings
+    rings.forget(near)
+    assert np.array_equal(rings.least(everything), fresh)
+    assert np.array_equal(fresh[~near], before[~near])  # the others did not change

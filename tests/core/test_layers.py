@@ -323,3 +323,58 @@ def test_half_the_vertices_gone_reads_at_a_rung_far_below_the_detectors_own(monk
     assert res.detected and res.crc_ok and res.payload == PAYLOAD and res.layer == "geometry"
     monkeypatch.setattr(geosync, "RUNGS_BELOW", 3)
     assert not detect_mesh([(sv, sf)], KEY, payload=PAYLOAD).detected
+
+
+
+def test_a_geometric_choice_read_from_kept_rows_is_a_fresh_analysis() -> None:
+    """The embedder's re-choices (``_Mesh.reselect``) take the rows of the carriers it keeps current
+    (analysis.geometric_read): the result is analyse_geometric's, array for array, with the rings a
+    neighbour's move flattened dropped and the scale test made over the whole choice."""
+    from core.analysis import geometric_read
+    from core.embedding import _refresh
+
+    v, f = _lopsided()
+    word = encode(KEY, np.array([int(c) for c in PAYLOAD], np.uint8))
+    prepared, placements, _ = _prepared_placements([(v, f)], KEY, len(word), "planes")
+    adj, placement = prepared[0][0], placements[0]
+    assert placement is not None
+    rng = np.random.default_rng(5)
+    v = v.copy()
+    a = analyse_geometric(v, adj, KEY, ["planes"], placement)["planes"]
+    others = np.setdiff1d(np.arange(len(v)), a.carriers)
+    extra = np.sort(rng.choice(others, len(a.carriers) // 3, replace=False))
+
+    def read(sel: np.ndarray) -> object:
+        sel = np.unique(sel)
+        return sel, rng.integers(0, 2**63, len(sel)).astype(np.uint64)
+
+    # kept: most of the choice and half the extra carriers, read at these positions
+    kept_sel, kept_hash = read(np.concatenate([a.carriers[: 2 * len(a.carriers) // 3], extra[::2]]))
+    kept = analyse_geometric(v, adj, KEY, ["planes"], placement, chosen=(kept_sel, kept_hash))["planes"]
+    # then the rings of a few kept carriers are laid on a line, and those of a tenth of the extra
+    # ones made far coarser (the median of the scale test moves): the moved vertices are no carrier,
+    # and the kept rows with a moved neighbour are read again, as the embedder's rounds do
+    flat, coarse = kept.carriers[:: 97][:20], extra[1::2][: len(extra) // 10]
+    fixed = np.zeros(len(v), bool)
+    fixed[np.concatenate([kept_sel, extra])] = True
+    moved = np.zeros(len(v), bool)
+    for c in flat:
+        ring = adj.indices[adj.indptr[c]:adj.indptr[c + 1]]
+        line = v[c] + np.linspace(-1e-2, 1e-2, len(ring))[:, None] * np.array([1.0, 0.3, -0.2])
+        v[ring[~fixed[ring]]] = line[~fixed[ring]]
+        moved[ring[~fixed[ring]]] = True
+    ring = adj.indices[adj.ring_entries(coarse)[1]]
+    ring = ring[~fixed[ring]]
+    v[ring] += 0.05 * rng.normal(size=(len(ring), 3))
+    moved[ring] = True
+    near = np.zeros(len(v), bool)
+    near[adj.indices[adj.ring_entries(np.flatnonzero(moved))[1]]] = True
+    _refresh(kept, v, adj, np.flatnonzero(near[kept.carriers]), "planes", TOL)
+    sel, hashes = read(np.concatenate([a.carriers[len(a.carriers) // 3:], extra]))
+    got = geometric_read([kept], v, adj, (sel, hashes))
+    want = analyse_geometric(v, adj, KEY, ["planes"], placement, chosen=(sel, hashes))["planes"]
+    dropped = np.setdiff1d(sel, want.carriers)
+    assert np.isin(flat, dropped).sum() >= 5 and np.isin(coarse, dropped).any()
+    assert got.geometric and got.signed is None
+    for name in ("carriers", "slot_hash", "z", "mu", "axes", "lam", "scale"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
