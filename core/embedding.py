@@ -631,7 +631,8 @@ class _Mesh:
                                  tol=self.tol)
         else:
             self._own(self.local, moved, near)
-        if self.geo is not None:
+        if near is not None:  # (the geometric layer exists)
+            assert self.geo is not None
             self._own(self.geo, moved, near)
             self.rings.forget(near)
 
