@@ -303,6 +303,13 @@ def carrier_statistics(v: np.ndarray, adj: Adjacency, sel: np.ndarray,
     return out
 
 
+def _rows_in(carriers: np.ndarray, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each vertex of ``sel``, its row in the sorted, non-empty ``carriers`` of an analysis and
+    whether it is one of them (the row is meaningless where it is not)."""
+    at = np.minimum(np.searchsorted(carriers, sel), len(carriers) - 1)
+    return at, carriers[at] == sel
+
+
 def reanalysed(prev: Analysis, v: np.ndarray, adj: Adjacency, labels: Labels, key: str | bytes, method: str,
                prio: np.ndarray, moved: np.ndarray, tol: Tolerances = TOL) -> Analysis:
     """:func:`analyse` of the connectivity layer at positions ``v`` with priorities ``prio``, equal to
@@ -317,9 +324,9 @@ def reanalysed(prev: Analysis, v: np.ndarray, adj: Adjacency, labels: Labels, ke
     sel = select_carriers(adj, prio, labels.usable)
     if not len(prev.carriers) or prev.signed is None or prev.geometric:
         return analyse(v, adj.faces, key, method, adj=adj, labels=labels, tol=tol, prio=prio)
-    at = np.minimum(np.searchsorted(prev.carriers, sel), len(prev.carriers) - 1)
+    at, held = _rows_in(prev.carriers, sel)
     ring_moved = adj.ring_sum_u64(moved.astype(np.uint64)) > 0
-    reuse = (prev.carriers[at] == sel) & ~ring_moved[sel]
+    reuse = held & ~ring_moved[sel]
     at, fresh = at[reuse], np.flatnonzero(~reuse)
     k = len(sel)
     mu, axes, lam, scale = np.empty((k, 3)), np.empty((k, 3, 3)), np.empty((k, 3)), np.empty(k)
@@ -371,12 +378,12 @@ def geometric_read(known: Sequence[Analysis], vertices: np.ndarray, adj: Adjacen
     """:func:`analyse_geometric` at the carriers ``chosen`` (vertices, cell hashes), equal to it array
     for array, reading only the carriers that no analysis of ``known`` holds.
 
-    ``known``: geometric analyses whose every row is current at ``vertices`` (the boundary from the
-    present positions of the carrier's neighbours, the statistic from its own), as the embedder keeps
-    its own (:meth:`core.embedding._Mesh.round` reads again what a move changes).  A row taken from
-    them is tested again for a surface (a neighbour's move may have flattened its ring), and the scale
-    test (against the median of every kept carrier's) is made over the whole choice, as
-    :func:`carrier_statistics` does."""
+    ``known``: geometric analyses (carriers sorted, as every analysis has them) whose every row is
+    current at ``vertices`` (the boundary from the present positions of the carrier's neighbours, the
+    statistic from its own), as the embedder keeps its own (:meth:`core.embedding._Mesh.round` reads
+    again what a move changes).  A row taken from them is tested again for a surface (a neighbour's
+    move may have flattened its ring), and the scale test (against the median of every kept
+    carrier's) is made over the whole choice, as :func:`carrier_statistics` does."""
     v = np.asarray(vertices, np.float64)
     sel, hashes = np.asarray(chosen[0], np.int64), np.asarray(chosen[1], np.uint64)
     known = [a for a in known if len(a.carriers)]
@@ -388,10 +395,9 @@ def geometric_read(known: Sequence[Analysis], vertices: np.ndarray, adj: Adjacen
     scale, z = np.empty(k), np.empty(k)
     have = np.zeros(k, bool)
     for a in known:
-        order = np.argsort(a.carriers)
-        at = order[np.minimum(np.searchsorted(a.carriers[order], sel), len(order) - 1)]
+        at, held = _rows_in(a.carriers, sel)
         # (a scale below 1e-300 was read with a floor in the embedder's re-reading: read it afresh)
-        hit = ~have & (a.carriers[at] == sel) & (a.scale[at] >= 1e-300)
+        hit = ~have & held & (a.scale[at] >= 1e-300)
         src = at[hit]
         mu[hit], axes[hit], lam[hit] = a.mu[src], a.axes[src], a.lam[src]
         scale[hit], z[hit] = a.scale[src], a.z[src]

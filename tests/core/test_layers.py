@@ -325,7 +325,6 @@ def test_half_the_vertices_gone_reads_at_a_rung_far_below_the_detectors_own(monk
     assert not detect_mesh([(sv, sf)], KEY, payload=PAYLOAD).detected
 
 
-
 def test_a_geometric_choice_read_from_kept_rows_is_a_fresh_analysis() -> None:
     """The embedder's re-choices (``_Mesh.reselect``) take the rows of the carriers it keeps current
     (analysis.geometric_read): the result is analyse_geometric's, array for array, with the rings a
@@ -344,7 +343,7 @@ def test_a_geometric_choice_read_from_kept_rows_is_a_fresh_analysis() -> None:
     others = np.setdiff1d(np.arange(len(v)), a.carriers)
     extra = np.sort(rng.choice(others, len(a.carriers) // 3, replace=False))
 
-    def read(sel: np.ndarray) -> object:
+    def read(sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         sel = np.unique(sel)
         return sel, rng.integers(0, 2**63, len(sel)).astype(np.uint64)
 
