@@ -319,7 +319,7 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
                 prepared: list[tuple[Adjacency, Labels]] | None = None, rms_budget: float | None = None,
                 diagonal: float | None = None, slot_rule: SlotRule | None = None,
                 placements: Sequence[Placement | None] | None = None,
-                selections: Sequence[Selection] | None = None
+                selections: Sequence[Selection] | None = None, still: Sequence[np.ndarray] | None = None
                 ) -> tuple[list[np.ndarray], list[EmbedStats], list[Analysis]]:
     """Move carriers of one or several meshes so that the detector reads ``codeword``.
 
@@ -360,6 +360,10 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
         (``method``) at the original positions, when the caller made them (they depend on ``tol``
         only through what :func:`~core.pipeline._capped` leaves alone), with what else of the
         start it made.
+    still : sequence of (n_i,) bool ndarray, optional
+        Per mesh, vertices that are never moved (a carrier among them reads whatever it reads at
+        its original position): the carriers whose moves made the selection swap vertices in an
+        earlier embedding (:func:`~core.pipeline._embed_doc`).
 
     Returns
     -------
@@ -389,6 +393,9 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
     states = [_Mesh(v, f, adj, lab, key, method, tol, p, bbox_diagonal(v) if diagonal is None else diagonal,
                     strength, sel)
               for v, f, (adj, lab), p, sel in zip(v0s, faces, prepared, places, chosen0, strict=True)]
+    if still is not None:
+        for st, keep in zip(states, still, strict=True):
+            st.still = keep
     an = [st.local for st in states]
     ranked = ranked_by_default(sum(len(a.carriers) for a in an), L)
     # keyed sides only where the detector reads the signed statistic: a file of fewer connectivity
@@ -487,6 +494,7 @@ class _Mesh:
             self._tied = beside(partial(tied_pairs, self.prio, adj))
         self.skipped = np.zeros(len(v0), bool)
         self.held = np.zeros(len(v0), bool)
+        self.still = np.zeros(len(v0), bool)  # vertices never moved (embed_parts' ``still``)
         med = float(np.median(self.local.scale)) if len(self.local.scale) else 0.0
         own = max(tol.max_move * bbox_diagonal(v0), tol.coarse_move * med)
         self.cap = min(own, tol.max_displacement * diagonal)
@@ -540,7 +548,7 @@ class _Mesh:
                 # a bit 1 read within AT_BEST of the deepest its boundary allows has nowhere to go
                 deep = (want < 0) & (want * b.z >= (1.0 - AT_BEST) * deepest(self._of(b), b, self.tol))
                 bad = (want * b.z < share * limit) & ~deep & free
-                bad &= ~self.skipped[b.carriers] & ~self.held[b.carriers]
+                bad &= ~self.skipped[b.carriers] & ~self.held[b.carriers] & ~self.still[b.carriers]
                 if bad.any():
                     out.append((b, bits, bad, share))
             return out

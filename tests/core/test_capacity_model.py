@@ -103,3 +103,70 @@ def test_every_payload_of_the_few_bits_capacity_offers_embeds() -> None:
             payload = format(i, f"0{n}b")
             marked = embed_file(data, key, filename=name, payload=payload, method=method)
             assert detect_file(marked.data, key, filename=name, method=method).payload == payload
+
+
+#: a random 160-bit payload on Spot with planes, key-9, whose moves swap the selection
+SWAPPING_160 = ("00100011100010011101100001001100010010001001010011101011001011111"
+                "00111000001100100011000011100010010000010110110000011001101111101000010000000010"
+                "010001011000000")
+
+
+def test_an_embedding_whose_ranked_selection_moved_is_told_and_held_still() -> None:
+    """A 160-bit payload on Spot with planes, key-9: the first try's moves end with a selection of 8
+    carriers fewer and 6 others (so the embedding reads nothing: every carrier ranked after them
+    holds another bit); with hashed slots, whose carriers keep theirs, the same end is not a shift."""
+    key = "key-9"
+    doc = pipeline.read_mesh(shared_mesh_path("spot.obj").read_bytes(), "spot.obj", pipeline.DEFAULT_LIMITS)
+    parts = pipeline._usable_parts(doc)
+    meshes = [(doc.parts[i].vertices, doc.parts[i].faces) for i in parts]
+    prepared, _, selections = pipeline._prepared_placements(meshes, key, 76, "planes")
+    bits = np.array([int(c) for c in SWAPPING_160], np.uint8)
+    cw = encode(key, bits)
+    _, _, final = embed_parts(meshes, key, cw, "planes", 0.07, tol=pipeline._capped(4.0),
+                              prepared=prepared, quantize=pipeline._part_quantizer(doc, parts, doc.decimals),
+                              diagonal=pipeline._file_diagonal(doc), selections=selections,
+                              placements=[None] * len(meshes))
+    assert pipeline._moved(final, selections, len(cw))
+    assert not pipeline._moved(final, selections, len(final[0].carriers) // 4)  # hashed at that length
+    still = embed_parts(meshes, key, np.zeros(1, np.uint8), "planes", 0.07,
+                        tol=pipeline._capped(4.0), prepared=prepared, selections=selections,
+                        quantize=pipeline._part_quantizer(doc, parts, doc.decimals),
+                        diagonal=pipeline._file_diagonal(doc), placements=[None] * len(meshes))[2]
+    assert not pipeline._moved(still, selections, len(cw))  # key-9's probes move nothing
+    # the carriers next to the swapped vertices left where they are: the selection stays
+    held = pipeline._still(final, selections, [prepared[0][0]], None)
+    swapped = np.setxor1d(final[0].carriers, selections[0].analysis.carriers)
+    assert held[0][swapped].all() and 0 < held[0].sum() < 10 * len(swapped)
+    vs, _, again = embed_parts(meshes, key, cw, "planes", 0.07, tol=pipeline._capped(4.0), prepared=prepared,
+                               quantize=pipeline._part_quantizer(doc, parts, doc.decimals),
+                               diagonal=pipeline._file_diagonal(doc), selections=selections,
+                               placements=[None] * len(meshes), still=held)
+    assert not pipeline._moved(again, selections, len(cw))
+    assert np.array_equal(vs[0][held[0]], meshes[0][0][held[0]])
+
+
+def test_capacity_offers_a_rung_below_the_highest_its_trials_pass_where_trials_alone_decide() -> None:
+    """Issue 14, "capacity says exactly what embeds": the Sink with ellipsoids, key-31, was offered 32
+    bits after 8 random trials passed, and 2 of 30 random 32-bit payloads were refused (the compact
+    frame on a mesh of regular labels: the model does not cover it).  Capacity now offers the next
+    length down whose trials pass, and random payloads of it embed."""
+    name, method, key = "sink.3ds", "ellipsoids", "key-31"
+    data = shared_mesh_path(name).read_bytes()
+    top = capacity(data, Options(key=key, method=method), filename=name).max_payload_bits
+    assert 0 < top < 32
+    rng = np.random.default_rng(11)
+    for _ in range(4):
+        payload = "".join(map(str, rng.integers(0, 2, top)))
+        marked = embed_file(data, key, filename=name, payload=payload, method=method)
+        assert detect_file(marked.data, key, filename=name, method=method).payload == payload
+
+
+def test_a_payload_whose_moves_swap_the_selection_is_embedded_with_those_carriers_still() -> None:
+    """The 160-bit payload above, through the whole embedder: refused before (every try's moves swapped
+    the selection again, and the re-rankings alternated between two selections); with the carriers
+    next to the swapped vertices left where they are, the selection stays and the payload reads back."""
+    name, key = "spot.obj", "key-9"
+    data = shared_mesh_path(name).read_bytes()
+    payload = SWAPPING_160
+    marked = embed_file(data, key, filename=name, payload=payload, method="planes")
+    assert detect_file(marked.data, key, filename=name, method="planes").payload == payload
