@@ -390,12 +390,11 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
         prepared = prepare(v0s, faces)
     places = list(placements) if placements is not None else [None] * len(meshes)
     chosen0 = list(selections) if selections is not None else [None] * len(meshes)
+    keep = list(still) if still is not None else [None] * len(meshes)
     states = [_Mesh(v, f, adj, lab, key, method, tol, p, bbox_diagonal(v) if diagonal is None else diagonal,
-                    strength, sel)
-              for v, f, (adj, lab), p, sel in zip(v0s, faces, prepared, places, chosen0, strict=True)]
-    if still is not None:
-        for st, keep in zip(states, still, strict=True):
-            st.still = keep
+                    strength, sel, k)
+              for v, f, (adj, lab), p, sel, k in zip(v0s, faces, prepared, places, chosen0, keep,
+                                                     strict=True)]
     an = [st.local for st in states]
     ranked = ranked_by_default(sum(len(a.carriers) for a in an), L)
     # keyed sides only where the detector reads the signed statistic: a file of fewer connectivity
@@ -459,7 +458,8 @@ class _Mesh:
 
     def __init__(self, v0: np.ndarray, faces: np.ndarray, adj: Adjacency, labels: Labels, key: str | bytes,
                  method: str, tol: Tolerances, placement: Placement | None, diagonal: float,
-                 strength: float, selection: Selection | None = None) -> None:
+                 strength: float, selection: Selection | None = None,
+                 still: np.ndarray | None = None) -> None:
         self.v0, self.v, self.faces, self.adj, self.labels = v0, v0.copy(), faces, adj, labels
         self.key, self.method, self.tol, self.placement, self.diag = key, method, tol, placement, diagonal
         #: the least-variance axes of the rings the geometric choices compared (:class:`Rings`), kept
@@ -494,7 +494,8 @@ class _Mesh:
             self._tied = beside(partial(tied_pairs, self.prio, adj))
         self.skipped = np.zeros(len(v0), bool)
         self.held = np.zeros(len(v0), bool)
-        self.still = np.zeros(len(v0), bool)  # vertices never moved (embed_parts' ``still``)
+        #: vertices never moved (embed_parts' ``still``)
+        self.still = np.zeros(len(v0), bool) if still is None else still
         med = float(np.median(self.local.scale)) if len(self.local.scale) else 0.0
         own = max(tol.max_move * bbox_diagonal(v0), tol.coarse_move * med)
         self.cap = min(own, tol.max_displacement * diagonal)

@@ -1342,10 +1342,10 @@ def _verified_payload(doc: MeshDocument, options: Options, bound: int,
                 top = hashed
                 todo = [m for m in ladder(top) if m <= n]
                 continue
-        edge = spare and n <= COMPACT_MAX_PAYLOAD and not _exhaustive(n)
-        if ok and not edge:
-            return n
-        spare = spare and not (ok and edge)
+        if ok:
+            if not (spare and n <= COMPACT_MAX_PAYLOAD and not every):
+                return n
+            spare = False  # the margin rung given up: the next one down that passes is offered
     return 0
 
 
