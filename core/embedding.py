@@ -343,7 +343,8 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
         Largest RMS displacement of each mesh's vertices, as a fraction of its bounding-box
         diagonal: the first round moves carriers in order of increasing displacement while the
         budget lasts and leaves the others (``tol.rms_budget`` at the default strength).  The
-        geometric layer's moves are made first and count against it.
+        geometric layer's moves count against it: priced in the first round at the carriers of the
+        original frame, made once the frame has followed the connectivity layer's moves.
     diagonal : float, optional
         The bounding-box diagonal the displacement ceiling and the RMS budget refer to: the
         file's, so that a small part of a scene is not held to its own size (default: each
@@ -474,6 +475,9 @@ class _Mesh:
         self.local = selection.analysis.copy()
         self.local0 = self.local.carriers
         self.followed = False  # the placement's frame was made again at the moved positions
+        #: the geometric carriers were just chosen in the followed frame: the next round moves them
+        #: to the full margin (:meth:`round`)
+        self.fresh = False
         # the embedder's placement comes with its carriers at the original positions
         made = None if selection.geometric is None or placement is None else selection.geometric.result()
         self.geo = made.copy() if made is not None else \
@@ -541,14 +545,28 @@ class _Mesh:
             in_g[g.carriers] = True
             layers.append((g, codeword[(g.slot_hash % np.uint64(L)).astype(np.int64)],
                            np.ones(len(g.carriers), bool), GEOMETRIC_MARGIN))
-        layers.append((a, codeword[local_slots], ~in_g[a.carriers], 1.0))
+        # until the frame has followed the connectivity layer's moves (:meth:`reselect`) the
+        # geometric carriers of the original frame are priced (the first round's margin and cap),
+        # not moved: most of them lose their cell to a neighbour once the frame follows (39,348 of
+        # 41,855 on the 1M-vertex turbine blade), and their moves would be spent on vertices that
+        # carry nothing; the connectivity layer meanwhile moves every one of its carriers
+        defer = g is not None and not self.followed
+        free = np.ones(len(a.carriers), bool) if defer else ~in_g[a.carriers]
+        layers.append((a, codeword[local_slots], free, 1.0))
+        # the geometric carriers just chosen in the followed frame are moved to the full margin, as
+        # the first round moves the connectivity layer's
+        fresh = self.fresh
+
         def needing(limit: float) -> list[tuple[Analysis, np.ndarray, np.ndarray, float]]:
             out = []
             for b, bits, free, share in layers:
+                if b.geometric and defer and not (r == 1 and rms_budget is not None):
+                    continue
+                lim = self.margin if b.geometric and fresh else limit
                 want = np.where(bits == 0, 1.0, -1.0)
                 # a bit 1 read within AT_BEST of the deepest its boundary allows has nowhere to go
                 deep = (want < 0) & (want * b.z >= (1.0 - AT_BEST) * deepest(self._of(b), b, self.tol))
-                bad = (want * b.z < share * limit) & ~deep & free
+                bad = (want * b.z < share * lim) & ~deep & free
                 bad &= ~self.skipped[b.carriers] & ~self.held[b.carriers] & ~self.still[b.carriers]
                 if bad.any():
                     out.append((b, bits, bad, share))
@@ -564,6 +582,7 @@ class _Mesh:
         if r == 1 and rms_budget is not None:
             self.margin, moves = self._margin_within(lambda m: at(m, needing(m)), rms_budget)
             todo = needing(self.margin)
+        self.fresh = False
         if not todo:
             return False
         if g is not None and r > SETTLE_AFTER and \
@@ -580,6 +599,10 @@ class _Mesh:
             self.cap = min(self.cap, budget_cap(effs, np.sqrt(room / max(len(self.v), 1)), len(self.v)))
             for mv in moves:
                 mv.ok &= mv.eff <= self.cap
+            if defer:
+                moves = [mv for t, mv in zip(todo, moves, strict=True) if not t[0].geometric]
+                if not moves:
+                    return False
         idx = np.concatenate([mv.idx for mv in moves])
         new = np.concatenate([mv.new for mv in moves])
         ok = np.concatenate([mv.ok for mv in moves])
@@ -656,7 +679,8 @@ class _Mesh:
         """Choose the geometric carriers again at the current positions (the moves change which
         vertex is nearest a few cells' centres, and the surface's frame: on the counter plate by a
         tenth of a cell, so the frame is made again the first time); True when more than
-        :data:`SETTLED` of them are new.
+        :data:`SETTLED` of them are new, and always the first time (the rounds have not moved the
+        geometric layer yet).
 
         After the follow, a carrier that loses its cell stays among those the rounds move (held to
         its cell's bit): the cells that keep changing are ties between two neighbours, and the move
@@ -669,14 +693,23 @@ class _Mesh:
             return False  # nothing moved since the last choice: the same carriers
         assert self.placement is not None
         self.dirty = False
-        if not self.followed and np.any(self.v != self.v0):
-            self.placement = follow(self.placement, self.v, self.faces)
-            self.followed = True
-            now = self._geometric(known=[self.geo])
-            assert now is not None
-            changed = len(np.setxor1d(now.carriers, self.geo.carriers, assume_unique=True))
-            self.geo = self.view = now
-            return changed > SETTLED * max(len(now.carriers), 1)
+        if not self.followed:
+            # the first choice: the geometric layer has not moved yet (:meth:`round`); its frame
+            # follows the connectivity layer's moves, and the carriers of the original frame that
+            # lose their cell are held like any other (each is its cell's runner-up, and carries
+            # its bit too): the rounds then move them all, to the full margin
+            self.followed = self.fresh = True
+            if np.any(self.v != self.v0):
+                self.placement = follow(self.placement, self.v, self.faces)
+                self._choose()
+            return True
+        return self._choose()
+
+    def _choose(self) -> bool:
+        """Choose the geometric carriers at the current positions (:attr:`view`), keeping those that
+        lost their cell among the carriers the rounds move (:attr:`geo`); True when more than
+        :data:`SETTLED` of the chosen ones are new."""
+        assert self.geo is not None
         now = self._geometric(known=[self.geo])
         assert now is not None
         self.view = now
