@@ -90,7 +90,7 @@ RMS_BUDGETS = (TOL.rms_budget,)
 #: the shared meshes), and aims lower, at most BUDGET_RETRIES times, while the result exceeds it;
 #: with a geometric layer, whose moves the first round prices at the original frame's carriers and
 #: the rounds make once the frame has followed (core.embedding._Mesh.round), at BUDGET_AIM_GEO (at
-#: 0.95 the engine table's meshes ended at RMS 1.84-1.88e-4, at 1.0 at 1.87-1.99e-4; core/README.md)
+#: 0.95 five of the engine table's meshes ended at RMS 1.84-1.88e-4, at 1.0 1.89-1.99e-4; core/README.md)
 BUDGET_AIM, BUDGET_AIM_GEO, BUDGET_RETRIES = 0.95, 1.0, 3
 
 

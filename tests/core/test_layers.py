@@ -279,6 +279,35 @@ def test_a_cell_that_changes_hands_after_the_follow_keeps_both_vertices() -> Non
     assert set(first) <= set(st.geo.carriers.tolist())
 
 
+def test_the_geometric_layer_moves_once_its_frame_has_followed_the_connectivity_moves() -> None:
+    """The first round prices the geometric carriers of the original frame but moves only the
+    connectivity layer's; the first choice after it makes the frame again, holds the original
+    carriers that lost their cell, and the next round moves the geometric layer to the full margin."""
+    from core.slots import assign_slots, ranked_by_default
+
+    v, f = _lopsided()
+    word = encode(KEY, np.array([int(c) for c in PAYLOAD], np.uint8))
+    prepared, placements, _ = _prepared_placements([(v, f)], KEY, len(word), "planes")
+    (adj, labels), placement = prepared[0], placements[0]
+    assert placement is not None
+    st = _Mesh(v, f, adj, labels, KEY, "planes", TOL, placement, 1.0, 0.07)
+    assert st.geo is not None
+    original = st.geo.carriers.copy()
+    geometric_only = np.setdiff1d(original, st.local.carriers)
+    L = len(word)
+    slots = assign_slots([st.local.slot_hash], L, ranked_by_default(len(st.local.carriers), L))[0]
+    assert st.round(1, word, slots, 1.9e-4, None)
+    moved = np.any(st.v != v, axis=1)
+    assert moved[st.local.carriers].any() and not moved[geometric_only].any()
+    assert st.reselect() and st.followed and st.fresh
+    assert st.view is not None and not np.array_equal(st.view.carriers, original)
+    assert set(original.tolist()) <= set(st.geo.carriers.tolist())
+    before = st.v.copy()
+    assert st.round(2, word, slots, 1.9e-4, None) and not st.fresh
+    now_moved = np.any(st.v != before, axis=1)
+    assert now_moved[np.setdiff1d(st.geo.carriers, st.local.carriers)].any()
+
+
 def test_the_interior_view_keeps_the_carriers_whose_labels_the_cut_left_alone() -> None:
     """A cut changes the labels up to the refinement's rounds from it, no further: in a cropped
     piece of a closed mesh, every carrier the interior view keeps voting has the label its vertex
