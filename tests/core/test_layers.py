@@ -243,15 +243,23 @@ def test_the_selections_made_beside_the_frame_change_nothing(split: bool, monkey
         assert all(np.array_equal(x, y) for x, y in zip(before, state(s), strict=True))
 
 
-def test_a_cell_that_changes_hands_after_the_follow_keeps_both_vertices() -> None:
-    """After the follow, a geometric carrier that loses its cell stays among the carriers the rounds
-    move, and a cell going back to it is no change: the ties that flip with every move settle."""
+def _embedding_lopsided() -> tuple[np.ndarray, np.ndarray, _Mesh]:
+    """:func:`_lopsided`'s vertices, the codeword of ``PAYLOAD`` and the embedder's state
+    (``planes``, with its placement) before any round."""
     v, f = _lopsided()
     word = encode(KEY, np.array([int(c) for c in PAYLOAD], np.uint8))
     prepared, placements, _ = _prepared_placements([(v, f)], KEY, len(word), "planes")
     (adj, labels), placement = prepared[0], placements[0]
     assert placement is not None
-    st = _Mesh(v, f, adj, labels, KEY, "planes", TOL, placement, 1.0, 0.07)
+    return v, word, _Mesh(v, f, adj, labels, KEY, "planes", TOL, placement, 1.0, 0.07)
+
+
+def test_a_cell_that_changes_hands_after_the_follow_keeps_both_vertices() -> None:
+    """After the follow, a geometric carrier that loses its cell stays among the carriers the rounds
+    move, and a cell going back to it is no change: the ties that flip with every move settle."""
+    v, _, st = _embedding_lopsided()
+    adj, placement = st.adj, st.placement
+    assert placement is not None
     st.followed = True  # the frame as it is: what follows is the rule after the follow
     assert st.geo is not None and not st.reselect()
     first = st.geo.carriers.copy()
@@ -285,12 +293,7 @@ def test_the_geometric_layer_moves_once_its_frame_has_followed_the_connectivity_
     carriers that lost their cell, and the next round moves the geometric layer to the full margin."""
     from core.slots import assign_slots, ranked_by_default
 
-    v, f = _lopsided()
-    word = encode(KEY, np.array([int(c) for c in PAYLOAD], np.uint8))
-    prepared, placements, _ = _prepared_placements([(v, f)], KEY, len(word), "planes")
-    (adj, labels), placement = prepared[0], placements[0]
-    assert placement is not None
-    st = _Mesh(v, f, adj, labels, KEY, "planes", TOL, placement, 1.0, 0.07)
+    v, word, st = _embedding_lopsided()
     assert st.geo is not None
     original = st.geo.carriers.copy()
     geometric_only = np.setdiff1d(original, st.local.carriers)
