@@ -5,7 +5,10 @@ over and kept byte for byte.  The ``vertex`` element needs float or double ``x``
 ``z`` (other vertex properties -- colour, normals, confidence, flags... -- are carried
 through); the ``face`` element's ``vertex_indices`` (or ``vertex_index``) list may have any
 count and index types, and faces may have other properties.  Polygons are fan-triangulated
-for the engine.  ASCII files must hold one element record per line (as every writer does).
+for the engine.  A file without a ``face`` element may give its triangles as strips instead
+(a ``tristrips`` element, as range-scan tools and Stanford's older models write: each record a
+list of vertex indices, ``-1`` starting a new strip).  ASCII files must hold one element
+record per line (as every writer does).
 
 Declared counts are checked against :class:`Limits` and against the bytes (binary) or lines
 (ASCII) actually present before anything proportional to them is allocated.
@@ -240,6 +243,10 @@ def read(data: bytes, limits: Limits, name: str = "ply") -> PlyDocument:
     encoding, elements, body = _parse_header(data)
     vertex = next((e for e in elements if e.name == "vertex"), None)
     face = next((e for e in elements if e.name == "face"), None)
+    # no face element: triangle strips, if the file has them
+    strips = face is None and any(e.name == "tristrips" for e in elements)
+    if strips:
+        face = next(e for e in elements if e.name == "tristrips")
     if vertex is None:
         raise MeshFormatError("PLY file has no vertex element")
     limits.check("vertices", vertex.count)
@@ -269,7 +276,8 @@ def read(data: bytes, limits: Limits, name: str = "ply") -> PlyDocument:
     doc = PlyDocument(data, [], encoding)
     doc.elements = [(e.name, e.count) for e in elements]
     if encoding == "ascii":
-        positions, counts, flat = _read_ascii(doc, elements, vertex, face, coord_idx, index_prop, body)
+        positions, counts, flat = _read_ascii(doc, elements, vertex, face, coord_idx, index_prop, body,
+                                              -1 if strips else 0)
     else:
         positions, counts, flat = _read_binary(
             doc, elements, vertex, face, coord_idx, index_prop, body, _ENCODINGS[encoding]
@@ -280,6 +288,12 @@ def read(data: bytes, limits: Limits, name: str = "ply") -> PlyDocument:
     check_finite(positions)
     limits.check("faces", int(np.maximum(counts - 2, 0).sum()) if counts.size else 0)
     flat = np.asarray(flat, dtype=np.int64)
+    joins = 0
+    if strips:
+        if flat.size and flat.min() < -1:
+            record = int(np.searchsorted(np.cumsum(counts), int(np.flatnonzero(flat < -1)[0]), side="right"))
+            raise MeshFormatError("bad strip vertex index", f"tristrips record {record}")
+        counts, flat, joins = strip_triangles(counts, flat)
     if flat.size and (flat.min() < 0 or flat.max() >= vertex.count):
         bad = int(np.flatnonzero((flat < 0) | (flat >= vertex.count))[0])
         face_no = int(np.searchsorted(np.cumsum(counts), bad, side="right"))
@@ -289,9 +303,38 @@ def read(data: bytes, limits: Limits, name: str = "ply") -> PlyDocument:
     n_triangles = len(triangles)
     vertices, faces, slot_to_vertex = weld(positions, triangles, copy=False)  # both are temporaries
     doc.parts = [MeshPart("mesh0", vertices, faces, slot_to_vertex)]
-    # faces of fewer than 3 corners, and triangles that repeat a corner, are skipped
-    doc.skipped_elements = int(np.count_nonzero(counts < 3)) + n_triangles - len(faces)
+    # faces of fewer than 3 corners, and triangles that repeat a corner, are skipped (a strip's
+    # repeated corners that join it to the next piece are how strips are written: not counted)
+    doc.skipped_elements = int(np.count_nonzero(counts < 3)) + n_triangles - len(faces) - joins
     return doc
+
+
+def strip_triangles(counts: np.ndarray, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Triangle strips as triangles: ``(counts, flat, joins)`` of the triangles of the strips of
+    records of ``counts`` indices each (``flat``, record after record; ``-1`` ends a strip and
+    starts the next within a record), every other triangle of a strip turned to keep its
+    orientation (``b, a, c`` for the strip's ``a, b, c`` at odd positions).  ``joins``: the
+    triangles that repeat a corner (the degenerate triangles writers put between pieces of one
+    strip; the weld drops them)."""
+    counts = np.asarray(counts, np.int64)
+    flat = np.asarray(flat, np.int64)
+    n = flat.size
+    if n < 3:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), 0
+    # where a strip starts: a record's first index, or the one after a -1
+    start = np.zeros(n, bool)
+    start[(np.cumsum(counts) - counts)[counts > 0]] = True
+    start[1:] |= flat[:-1] < 0
+    first = np.maximum.accumulate(np.where(start, np.arange(n), 0))
+    i = np.arange(n - 2)
+    # three indices of one strip in a row (no -1 among them, no strip starting at i + 1 or i + 2)
+    ok = (flat[:-2] >= 0) & (flat[1:-1] >= 0) & (flat[2:] >= 0) & (first[2:] == first[:-2])
+    i = i[ok]
+    odd = ((i - first[i]) & 1).astype(bool)
+    a, b, c = flat[i], flat[i + 1], flat[i + 2]
+    tri = np.stack([np.where(odd, b, a), np.where(odd, a, b), c], axis=1)
+    joins = int(np.count_nonzero((a == b) | (b == c) | (a == c)))
+    return np.full(len(tri), 3, np.int64), tri.reshape(-1), joins
 
 
 def _check_counts(n: np.ndarray, room: np.ndarray, where: np.ndarray) -> None:
@@ -306,8 +349,9 @@ def _check_counts(n: np.ndarray, room: np.ndarray, where: np.ndarray) -> None:
 
 def _read_ascii(
     doc: PlyDocument, elements: list[_Element], vertex: _Element, face: _Element | None,
-    coord_idx: list[int], index_prop: int | None, body: int,
+    coord_idx: list[int], index_prop: int | None, body: int, lowest: int = 0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``lowest``: the smallest index allowed (-1 in strips, where it starts the next strip)."""
     data = doc.data
     arr = np.frombuffer(data, dtype=np.uint8)
     lines = split_lines(arr, body)
@@ -375,7 +419,7 @@ def _read_ascii(
         elif el is face and index_prop is not None:
             n, start = lists[index_prop]
             vals = ragged_take(block.values, start, n)
-            bad = (vals != np.floor(vals)) | ~(vals >= 0) | ~(vals < vertex.count)
+            bad = (vals != np.floor(vals)) | ~(vals >= lowest) | ~(vals < vertex.count)
             if bad.any():
                 face_no = int(np.searchsorted(np.cumsum(n), int(np.argmax(bad)), side="right"))
                 raise MeshFormatError("bad face vertex index", f"line {int(where[face_no])}")
