@@ -11,6 +11,7 @@ from core.errors import MeshMarkError
 from core.formats import read_mesh
 from tests.conftest import MESHES_DIR
 from tests.core.formats.helpers import OCTAHEDRON, WRITERS, binary_stl
+from tests.core.formats.test_ply_strips import _grid, _ply, _strip
 from tests.core.formats.test_text_formats import OBJ_CRLF, STL_ASCII, _ply_ascii, _ply_binary
 from tests.mutations import OPS, TOKENS, Op, apply_ops
 
@@ -24,6 +25,9 @@ SMALL = [
     ("a.stl", binary_stl(np.arange(18, dtype=float).reshape(2, 3, 3), header=b"solid x")),
     ("a.off", b"COFF\n# c\n4 2 0\n0 0 0 1 1 1 1\n1 0 0 1 1 1 1\n1 1 0 1 1 1 1\n0 1 0 1 1 1 1\n"
               b"3 0 1 2\n4 0 1 2 3 1 0 0\n"),
+    # triangle strips (a tristrips element, -1 between strips)
+    ("s.ply", _ply(_grid(2, 3), [_strip(0, 3) + [-1] + _strip(1, 3)], "ascii")),
+    ("s.ply", _ply(_grid(2, 3), [_strip(0, 3), [-1], _strip(1, 3)], "binary_little_endian")),
 ]
 # real files small enough to parse many times (skipped silently when the set is absent)
 REAL = [
