@@ -7,8 +7,8 @@ through); the ``face`` element's ``vertex_indices`` (or ``vertex_index``) list m
 count and index types, and faces may have other properties.  Polygons are fan-triangulated
 for the engine.  A file without a ``face`` element may give its triangles as strips instead
 (a ``tristrips`` element, as range-scan tools and Stanford's older models write: each record a
-list of vertex indices, ``-1`` starting a new strip).  ASCII files must hold one element
-record per line (as every writer does).
+list of vertex indices, ``-1`` -- or, unsigned, the type's largest value -- starting a new
+strip).  ASCII files must hold one element record per line (as every writer does).
 
 Declared counts are checked against :class:`Limits` and against the bytes (binary) or lines
 (ASCII) actually present before anything proportional to them is allocated.
@@ -275,9 +275,14 @@ def read(data: bytes, limits: Limits, name: str = "ply") -> PlyDocument:
             raise MeshFormatError("PLY face vertex indices must be integers")
     doc = PlyDocument(data, [], encoding)
     doc.elements = [(e.name, e.count) for e in elements]
+    # a strip ends at -1, or, with unsigned indices, at the type's largest value (OpenGL's restart index)
+    restart = None
+    if strips and face is not None and index_prop is not None:
+        code = face.props[index_prop].type
+        restart = int(np.iinfo(code).max) if code[0] == "u" else -1
     if encoding == "ascii":
         positions, counts, flat = _read_ascii(doc, elements, vertex, face, coord_idx, index_prop, body,
-                                              -1 if strips else 0)
+                                              restart)
     else:
         positions, counts, flat = _read_binary(
             doc, elements, vertex, face, coord_idx, index_prop, body, _ENCODINGS[encoding]
@@ -290,6 +295,8 @@ def read(data: bytes, limits: Limits, name: str = "ply") -> PlyDocument:
     flat = np.asarray(flat, dtype=np.int64)
     joins = 0
     if strips:
+        if restart is not None and restart >= 0:
+            flat[flat == restart] = -1
         if flat.size and flat.min() < -1:
             record = int(np.searchsorted(np.cumsum(counts), int(np.flatnonzero(flat < -1)[0]), side="right"))
             raise MeshFormatError("bad strip vertex index", f"tristrips record {record}")
@@ -349,9 +356,9 @@ def _check_counts(n: np.ndarray, room: np.ndarray, where: np.ndarray) -> None:
 
 def _read_ascii(
     doc: PlyDocument, elements: list[_Element], vertex: _Element, face: _Element | None,
-    coord_idx: list[int], index_prop: int | None, body: int, lowest: int = 0,
+    coord_idx: list[int], index_prop: int | None, body: int, restart: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``lowest``: the smallest index allowed (-1 in strips, where it starts the next strip)."""
+    """``restart``: in strips, the index that starts the next strip (read as -1)."""
     data = doc.data
     arr = np.frombuffer(data, dtype=np.uint8)
     lines = split_lines(arr, body)
@@ -419,6 +426,9 @@ def _read_ascii(
         elif el is face and index_prop is not None:
             n, start = lists[index_prop]
             vals = ragged_take(block.values, start, n)
+            if restart is not None:
+                vals = np.where(vals == restart, -1.0, vals)
+            lowest = 0 if restart is None else -1
             bad = (vals != np.floor(vals)) | ~(vals >= lowest) | ~(vals < vertex.count)
             if bad.any():
                 face_no = int(np.searchsorted(np.cumsum(n), int(np.argmax(bad)), side="right"))

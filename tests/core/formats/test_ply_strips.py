@@ -71,17 +71,23 @@ def _records(layout: str) -> list[list[int]]:
     return [one]
 
 
-def _ply(vertices: np.ndarray, records: list[list[int]], fmt: str) -> bytes:
+def _ply(vertices: np.ndarray, records: list[list[int]], fmt: str, index: str = "int") -> bytes:
+    """A strip PLY; with an unsigned ``index`` type (``uint``, ``ushort``) a -1 of ``records`` is
+    written as the type's largest value."""
     head = (f"ply\nformat {fmt} 1.0\ncomment strips\nelement vertex {len(vertices)}\nproperty float x\n"
             f"property float y\nproperty float z\nelement tristrips {len(records)}\n"
-            "property list int int vertex_indices\nend_header\n").encode()
+            f"property list int {index} vertex_indices\nend_header\n").encode()
+    code = {"int": "i", "uint": "I", "ushort": "H"}[index]
+    if code != "i":
+        top = (1 << (8 * struct.calcsize(code))) - 1
+        records = [[top if i < 0 else i for i in r] for r in records]
     if fmt == "ascii":
         lines = [" ".join(repr(float(x)) for x in v) for v in np.asarray(vertices, np.float32)]
         lines += [" ".join(map(str, [len(r), *r])) for r in records]
         return head + ("\n".join(lines) + "\n").encode()
     e = "<" if fmt == "binary_little_endian" else ">"
     body = [np.asarray(vertices, e + "f4").tobytes()]
-    body += [struct.pack(f"{e}i{len(r)}i", len(r), *r) for r in records]
+    body += [struct.pack(f"{e}i{len(r)}{code}", len(r), *r) for r in records]
     return head + b"".join(body)
 
 
@@ -107,6 +113,16 @@ def test_strips_read_as_the_grids_triangles_with_their_orientation(fmt: str, lay
     back[got] = np.arange(len(v))
     assert _canonical(back[part.faces]) == _canonical(_expected())
     assert doc.skipped_elements == 0  # the joins' degenerate triangles are how strips are written
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_big_endian"])
+@pytest.mark.parametrize("index", ["uint", "ushort"])
+def test_unsigned_strips_restart_at_the_largest_index(fmt: str, index: str) -> None:
+    v = _grid()
+    part = read_mesh(_ply(v, _records("restart"), fmt, index), "strips.ply").parts[0]
+    back = np.empty(len(v), np.int64)
+    back[part.slot_to_vertex] = np.arange(len(v))
+    assert _canonical(back[part.faces]) == _canonical(_expected())
 
 
 def test_strip_triangles_turns_every_other_triangle_and_restarts_at_minus_one() -> None:
