@@ -55,7 +55,7 @@ import numpy as np
 
 from core.errors import DegenerateMeshError, LimitExceededError, MeshFormatError
 from core.formats._binary import finite_float64, moved_slots, patch_xyz
-from core.formats.base import FormatSpec, Limits, MeshDocument, MeshPart, weld
+from core.formats.base import FormatSpec, Limits, MeshDocument, MeshPart, strip_triangles, weld
 from core.formats.gltf_accessors import FLOAT, POSITION_DTYPES, Encoding
 from core.formats.gltf_codecs import (
     DRACO_EXTENSION,
@@ -601,11 +601,9 @@ def _triangles(seq: np.ndarray, mode: int) -> np.ndarray:
         return seq[: n - n % 3].reshape(-1, 3)
     if n < 3:
         return np.zeros((0, 3), np.int64)
+    if mode == 5:  # one strip (glTF forbids restart values in indices)
+        return strip_triangles(np.array([n]), seq)[1].reshape(-1, 3)
     k = np.arange(n - 2)
-    if mode == 5:
-        odd = (k % 2).astype(bool)
-        a, b = seq[k], seq[k + 1]
-        return np.stack([np.where(odd, b, a), np.where(odd, a, b), seq[k + 2]], axis=1)
     return np.stack([np.full(n - 2, seq[0]), seq[k + 1], seq[k + 2]], axis=1)
 
 

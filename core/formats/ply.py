@@ -39,7 +39,7 @@ from core.formats._text import (
     split_lines,
     triangulate,
 )
-from core.formats.base import FormatSpec, Limits, MeshPart, weld
+from core.formats.base import FormatSpec, Limits, MeshPart, strip_triangles, weld
 
 _TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -314,34 +314,6 @@ def read(data: bytes, limits: Limits, name: str = "ply") -> PlyDocument:
     # repeated corners that join it to the next piece are how strips are written: not counted)
     doc.skipped_elements = int(np.count_nonzero(counts < 3)) + n_triangles - len(faces) - joins
     return doc
-
-
-def strip_triangles(counts: np.ndarray, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-    """Triangle strips as triangles: ``(counts, flat, joins)`` of the triangles of the strips of
-    records of ``counts`` indices each (``flat``, record after record; ``-1`` ends a strip and
-    starts the next within a record), every other triangle of a strip turned to keep its
-    orientation (``b, a, c`` for the strip's ``a, b, c`` at odd positions).  ``joins``: the
-    triangles that repeat a corner (the degenerate triangles writers put between pieces of one
-    strip; the weld drops them)."""
-    counts = np.asarray(counts, np.int64)
-    flat = np.asarray(flat, np.int64)
-    n = flat.size
-    if n < 3:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), 0
-    # where a strip starts: a record's first index, or the one after a -1
-    start = np.zeros(n, bool)
-    start[(np.cumsum(counts) - counts)[counts > 0]] = True
-    start[1:] |= flat[:-1] < 0
-    first = np.maximum.accumulate(np.where(start, np.arange(n), 0))
-    i = np.arange(n - 2)
-    # three indices of one strip in a row (no -1 among them, no strip starting at i + 1 or i + 2)
-    ok = (flat[:-2] >= 0) & (flat[1:-1] >= 0) & (flat[2:] >= 0) & (first[2:] == first[:-2])
-    i = i[ok]
-    odd = ((i - first[i]) & 1).astype(bool)
-    a, b, c = flat[i], flat[i + 1], flat[i + 2]
-    tri = np.stack([np.where(odd, b, a), np.where(odd, a, b), c], axis=1)
-    joins = int(np.count_nonzero((a == b) | (b == c) | (a == c)))
-    return np.full(len(tri), 3, np.int64), tri.reshape(-1), joins
 
 
 def _check_counts(n: np.ndarray, room: np.ndarray, where: np.ndarray) -> None:

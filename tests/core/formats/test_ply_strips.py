@@ -16,7 +16,7 @@ import pytest
 from core.api import detect_file, embed_file
 from core.errors import MeshFormatError
 from core.formats import read_mesh
-from core.formats.ply import strip_triangles
+from core.formats.base import strip_triangles
 
 ROWS, COLS = 40, 60
 
