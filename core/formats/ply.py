@@ -5,7 +5,7 @@ over and kept byte for byte.  The ``vertex`` element needs float or double ``x``
 ``z`` (other vertex properties -- colour, normals, confidence, flags... -- are carried
 through); the ``face`` element's ``vertex_indices`` (or ``vertex_index``) list may have any
 count and index types, and faces may have other properties.  Polygons are fan-triangulated
-for the engine.  A file without a ``face`` element may give its triangles as strips instead
+for the engine.  A file without faces may give its triangles as strips instead
 (a ``tristrips`` element, as range-scan tools and Stanford's older models write: each record a
 list of vertex indices, ``-1`` -- or, unsigned, the type's largest value -- starting a new
 strip).  ASCII files must hold one element record per line (as every writer does).
@@ -243,8 +243,9 @@ def read(data: bytes, limits: Limits, name: str = "ply") -> PlyDocument:
     encoding, elements, body = _parse_header(data)
     vertex = next((e for e in elements if e.name == "vertex"), None)
     face = next((e for e in elements if e.name == "face"), None)
-    # no face element: triangle strips, if the file has them
-    strips = face is None and any(e.name == "tristrips" for e in elements)
+    # no faces (no face element, or one of no records, as some writers declare beside their strips):
+    # triangle strips, if the file has them
+    strips = (face is None or face.count == 0) and any(e.name == "tristrips" for e in elements)
     if strips:
         face = next(e for e in elements if e.name == "tristrips")
     if vertex is None:

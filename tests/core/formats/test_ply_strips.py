@@ -170,3 +170,17 @@ def test_a_face_element_wins_over_strips() -> None:
     lines.append("4 0 3 1 4")
     doc = read_mesh((head + "\n".join(lines) + "\n").encode(), "both.ply")
     assert len(doc.parts[0].faces) == len(faces)
+
+
+def test_strips_are_read_beside_an_empty_face_element() -> None:
+    v = _grid(2, 2)
+    head = (f"ply\nformat ascii 1.0\nelement vertex {len(v)}\nproperty float x\nproperty float y\n"
+            "property float z\nelement face 0\nproperty list uchar int vertex_indices\n"
+            "element tristrips 1\nproperty list int int vertex_indices\nend_header\n")
+    lines = [" ".join(repr(float(x)) for x in p) for p in v]
+    strip = _strip(0, 2) + [-1] + _strip(1, 2)
+    lines.append(" ".join(map(str, [len(strip), *strip])))
+    part = read_mesh((head + "\n".join(lines) + "\n").encode(), "empty-faces.ply").parts[0]
+    back = np.empty(len(v), np.int64)
+    back[part.slot_to_vertex] = np.arange(len(v))
+    assert _canonical(back[part.faces]) == _canonical(_expected(2, 2))
