@@ -294,18 +294,17 @@ def read(data: bytes, limits: Limits, name: str = "ply") -> PlyDocument:
     check_finite(positions)
     limits.check("faces", int(np.maximum(counts - 2, 0).sum()) if counts.size else 0)
     flat = np.asarray(flat, dtype=np.int64)
+    if restart is not None and restart >= 0:
+        flat[flat == restart] = -1
+    lowest = -1 if strips else 0  # (a strip's -1 starts the next one)
+    if flat.size and (flat.min() < lowest or flat.max() >= vertex.count):
+        assert face is not None
+        bad = int(np.flatnonzero((flat < lowest) | (flat >= vertex.count))[0])
+        face_no = int(np.searchsorted(np.cumsum(counts), bad, side="right"))
+        raise MeshFormatError("face vertex index out of range", f"{face.name} {face_no}")
     joins = 0
     if strips:
-        if restart is not None and restart >= 0:
-            flat[flat == restart] = -1
-        if flat.size and flat.min() < -1:
-            record = int(np.searchsorted(np.cumsum(counts), int(np.flatnonzero(flat < -1)[0]), side="right"))
-            raise MeshFormatError("bad strip vertex index", f"tristrips record {record}")
         counts, flat, joins = strip_triangles(counts, flat)
-    if flat.size and (flat.min() < 0 or flat.max() >= vertex.count):
-        bad = int(np.flatnonzero((flat < 0) | (flat >= vertex.count))[0])
-        face_no = int(np.searchsorted(np.cumsum(counts), bad, side="right"))
-        raise MeshFormatError("face vertex index out of range", f"face {face_no}")
     triangles = triangulate(counts, flat)
     del flat
     n_triangles = len(triangles)
@@ -331,7 +330,7 @@ def _read_ascii(
     doc: PlyDocument, elements: list[_Element], vertex: _Element, face: _Element | None,
     coord_idx: list[int], index_prop: int | None, body: int, restart: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``restart``: in strips, the index that starts the next strip (read as -1)."""
+    """``restart``: in strips, the index that starts the next strip (kept; :func:`read` makes it -1)."""
     data = doc.data
     arr = np.frombuffer(data, dtype=np.uint8)
     lines = split_lines(arr, body)
@@ -399,10 +398,10 @@ def _read_ascii(
         elif el is face and index_prop is not None:
             n, start = lists[index_prop]
             vals = ragged_take(block.values, start, n)
+            index = (vals >= 0) & (vals < vertex.count)
             if restart is not None:
-                vals = np.where(vals == restart, -1.0, vals)
-            lowest = 0 if restart is None else -1
-            bad = (vals != np.floor(vals)) | ~(vals >= lowest) | ~(vals < vertex.count)
+                index |= vals == restart
+            bad = (vals != np.floor(vals)) | ~index
             if bad.any():
                 face_no = int(np.searchsorted(np.cumsum(n), int(np.argmax(bad)), side="right"))
                 raise MeshFormatError("bad face vertex index", f"line {int(where[face_no])}")

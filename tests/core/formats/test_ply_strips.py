@@ -159,28 +159,29 @@ def test_a_strip_file_embeds_detects_and_keeps_its_strips_byte_for_byte() -> Non
     assert not detect_file(data, "strip-key", filename="s.ply").detected
 
 
+def _faces_and_strips(vertices: np.ndarray, faces: np.ndarray, strip: list[int]) -> bytes:
+    """An ASCII PLY with a ``face`` element of ``faces`` (which may be empty) and a ``tristrips``
+    element of one record, ``strip``."""
+    head = (f"ply\nformat ascii 1.0\nelement vertex {len(vertices)}\nproperty float x\nproperty float y\n"
+            f"property float z\nelement face {len(faces)}\nproperty list uchar int vertex_indices\n"
+            "element tristrips 1\nproperty list int int vertex_indices\nend_header\n")
+    lines = [" ".join(repr(float(x)) for x in p) for p in vertices]
+    lines += [f"3 {a} {b} {c}" for a, b, c in np.asarray(faces).tolist()]
+    lines.append(" ".join(map(str, [len(strip), *strip])))
+    return (head + "\n".join(lines) + "\n").encode()
+
+
 def test_a_face_element_wins_over_strips() -> None:
     v = _grid(2, 2)
     faces = _expected(2, 2)
-    head = (f"ply\nformat ascii 1.0\nelement vertex {len(v)}\nproperty float x\nproperty float y\n"
-            f"property float z\nelement face {len(faces)}\nproperty list uchar int vertex_indices\n"
-            "element tristrips 1\nproperty list int int vertex_indices\nend_header\n")
-    lines = [" ".join(repr(float(x)) for x in p) for p in v]
-    lines += [f"3 {a} {b} {c}" for a, b, c in faces.tolist()]
-    lines.append("4 0 3 1 4")
-    doc = read_mesh((head + "\n".join(lines) + "\n").encode(), "both.ply")
+    doc = read_mesh(_faces_and_strips(v, faces, [0, 3, 1, 4]), "both.ply")
     assert len(doc.parts[0].faces) == len(faces)
 
 
 def test_strips_are_read_beside_an_empty_face_element() -> None:
     v = _grid(2, 2)
-    head = (f"ply\nformat ascii 1.0\nelement vertex {len(v)}\nproperty float x\nproperty float y\n"
-            "property float z\nelement face 0\nproperty list uchar int vertex_indices\n"
-            "element tristrips 1\nproperty list int int vertex_indices\nend_header\n")
-    lines = [" ".join(repr(float(x)) for x in p) for p in v]
     strip = _strip(0, 2) + [-1] + _strip(1, 2)
-    lines.append(" ".join(map(str, [len(strip), *strip])))
-    part = read_mesh((head + "\n".join(lines) + "\n").encode(), "empty-faces.ply").parts[0]
+    part = read_mesh(_faces_and_strips(v, np.zeros((0, 3), np.int64), strip), "empty-faces.ply").parts[0]
     back = np.empty(len(v), np.int64)
     back[part.slot_to_vertex] = np.arange(len(v))
     assert _canonical(back[part.faces]) == _canonical(_expected(2, 2))
