@@ -94,9 +94,15 @@ RMS_BUDGETS = (TOL.rms_budget,)
 BUDGET_AIM, BUDGET_AIM_GEO, BUDGET_RETRIES = 0.95, 1.0, 3
 
 
-def _aim(placements: Sequence[Placement | None]) -> float:
-    """The share of the RMS budget the first round aims at (:data:`BUDGET_AIM`)."""
-    return BUDGET_AIM_GEO if any(p is not None for p in placements) else BUDGET_AIM
+def _aim(geometric: bool) -> float:
+    """The share of the RMS budget the first round aims at: :data:`BUDGET_AIM_GEO` when a
+    geometric layer is embedded, else :data:`BUDGET_AIM`."""
+    return BUDGET_AIM_GEO if geometric else BUDGET_AIM
+
+
+def _placed(placements: Sequence[Placement | None]) -> bool:
+    """Whether any part has a geometric placement (the file embeds a geometric layer)."""
+    return any(p is not None for p in placements)
 
 
 #: a face has no area when |cross| <= this x (bounding-box diagonal)^2 (collinear corners)
@@ -552,7 +558,7 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
     # within the RMS budget the geometric layer's moves leave less to the connectivity layer: when
     # the file then does not read, the budget is tried again without the geometric layer before
     # it is given up (the gear with ellipsoids: 7e-4 of the diagonal otherwise)
-    layered = (True, False) if any(p is not None for p in placements) else (True,)
+    layered = (True, False) if _placed(placements) else (True,)
     tries: list[tuple[float | None, float, int | None, bool, SlotRule | None]] = [
         (b, f, d, g, None) for b in budgets for g in (layered if b is not None else (True,))
         for f in ((1.0,) if b is not None else CAP_FACTORS[-1:] if relaxed else CAP_FACTORS) for d in decs]
@@ -599,7 +605,7 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
             tables.append(table)
             rule = _ranked_as(table)
         tol = _capped(factor, clip)
-        aim = None if budget is None else _aim(placements if with_geo else []) * budget
+        aim = None if budget is None else _aim(with_geo and _placed(placements)) * budget
         for _ in range(BUDGET_RETRIES + 1):
             vs, stats, final = embed_parts(meshes, key, codeword, method, s, tol=tol, prepared=prepared,
                                            quantize=_part_quantizer(doc, parts, dec), rms_budget=aim,
@@ -1196,7 +1202,7 @@ def _capacity_doc(doc: MeshDocument, options: Options, report: Progress) -> tupl
     # the embedding an embed with the key-derived code would make: both layers, the RMS budget at
     # the default strength, so that the expected distortion is the one the embed reports
     diagonal = _file_diagonal(doc)
-    aim = _aim(placements) * RMS_BUDGETS[0] if options.strength is None else None
+    aim = _aim(_placed(placements)) * RMS_BUDGETS[0] if options.strength is None else None
     vs, stats, _ = embed_parts(meshes, key, cw, method, s, quantize=_part_quantizer(doc, parts, doc.decimals),
                                prepared=prepared, diagonal=diagonal, rms_budget=aim,
                                placements=placements, selections=selections)
