@@ -82,29 +82,37 @@ def viterbi(llrs: list[np.ndarray]) -> list[np.ndarray]:
     y = np.zeros((top, b, RATE))
     for i, v in enumerate(llrs):
         y[begin[i]:, i] = np.asarray(v, np.float64).reshape(-1, RATE)
-    start = np.full(STATES, -1e300)
-    start[0] = 0.0
-    metric = np.tile(start, (b, 1))
-    back = np.zeros((top, b, STATES), bool)
-    starts = {int(t) for t in begin[begin > 0]}
     # c[:, k, j, x]: into next state ns = 2 j + x from its predecessor j + k S / 2 (_PRED[k]), so
     # gathering the predecessors' metrics is a broadcast of the metric vector's two halves (the
-    # butterfly), and the branch metrics are one product with the step's LLRs (_SIGN_T)
+    # butterfly); the branch metrics of every step are one product with the LLRs (_SIGN_T), made
+    # before the loop, and each step writes into buffers made once (the steps are many and small:
+    # numpy's per-call cost, not arithmetic, is what a step takes)
+    branch = (y.reshape(top * b, RATE) @ _SIGN_T).reshape(top, b, 2, half, 2)
+    start = np.full(STATES, -1e300)
+    start[0] = 0.0
+    metric = np.tile(start, (b, 1)).reshape(b, 2, half, 1)
+    spare = np.empty((b, half, 2))
+    back = np.empty((top, b, half, 2), np.uint8)
+    starts = {int(t) for t in begin[begin > 0]}
+    c = np.empty((b, 2, half, 2))
+    c0, c1 = c[:, 0], c[:, 1]
     for t in range(top):
         if t in starts:
-            metric[begin == t] = start
-        c = metric.reshape(b, 2, half, 1) + (y[t] @ _SIGN_T).reshape(b, 2, half, 2)
-        back[t] = (c[:, 1] > c[:, 0]).reshape(b, STATES)
-        metric = np.maximum(c[:, 0], c[:, 1]).reshape(b, STATES)
+            metric.reshape(b, STATES)[begin == t] = start
+        np.add(metric, branch[t], out=c)
+        np.greater(c1, c0, out=back[t], casting="unsafe")
+        np.maximum(c0, c1, out=spare)
         if t >= top - TAIL:
-            metric[:, 1::2] = -1e300
+            spare[:, :, 1] = -1e300
+        metric, spare = spare.reshape(b, 2, half, 1), metric.reshape(b, half, 2)
     state = np.zeros(b, np.int64)
     bits = np.zeros((top, b), np.uint8)
-    flat = back.reshape(top, -1)
+    # the surviving predecessor's high bit, in place: state ns came from (ns >> 1) | back << (TAIL - 1)
+    high = back.reshape(top, -1).astype(np.int64) << (TAIL - 1)
     rows = np.arange(b) * STATES
     for t in range(top - 1, -1, -1):
         bits[t] = state & 1
-        state = (state >> 1) | (flat[t, rows + state].astype(np.int64) << (TAIL - 1))
+        state = (state >> 1) | high[t, rows + state]
     return [bits[begin[i]:top - TAIL, i].copy() for i in range(b)]
 
 
