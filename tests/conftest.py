@@ -47,3 +47,10 @@ def meshes_dir() -> Path:
     if not MESHES_DIR.is_dir():
         pytest.skip(f"shared meshes not found at {MESHES_DIR} (set MESHMARK_TEST_MESHES)")
     return MESHES_DIR
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The tests marked ``slow`` first, the others in their order: under pytest-xdist's
+    ``--dist loadfile`` (scripts/test) their files are then the first handed out, so the longest
+    test runs beside the rest of the suite instead of after it."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
