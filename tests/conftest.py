@@ -63,13 +63,12 @@ def _unique_node_ids(items: list[pytest.Item]) -> None:
     """pytest 9 builds an item's node id from its function's name and its parametrization;
     schemathesis 4 makes one item per API operation with no parametrization, so the 15 operations
     of tests/app/test_hardening_schema.py shared one node id, and pytest-xdist, which hands tests
-    out by node id, ran one of the 15 (and reported 1,078 passed of 1,092).  Such an item gets
+    out by node id, ran one of the 15 (and reported 1,078 passed of 1,092).  Every such item gets
     its operation as the id's parameter (``test_api_conforms_to_its_document[POST /v1/embed]``,
     the name pytest already shows); a duplicate left after that stops the run."""
-    counts = Counter(item.nodeid for item in items)
     for item in items:
-        label = getattr(item, "operation_label", None)
-        if counts[item.nodeid] > 1 and label and item._id.params is None:
+        label = getattr(item, "operation_label", None)  # a schemathesis item's operation
+        if label and item._id.params is None:
             item._id = item._id.with_params(str(label))  # no public setter for a node's id
     left = sorted(nodeid for nodeid, count in Counter(item.nodeid for item in items).items() if count > 1)
     if left:
