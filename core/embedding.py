@@ -34,7 +34,7 @@ from core.analysis import (
     tied_pairs,
 )
 from core.geosync import Placement, Rings, follow, geometric_carriers
-from core.mesh import Adjacency, bbox_diagonal
+from core.mesh import Adjacency, bbox_diagonal, changed_rows
 from core.parallel import SPLIT_FROM, beside, by_rows
 from core.slots import assign_slots, ranked_by_default
 from core.sync import Labels, vertex_labels
@@ -448,7 +448,7 @@ def embed_parts(meshes: Sequence[tuple[np.ndarray, np.ndarray]], key: str | byte
         for st in states:
             st.reselect()
         _reselect(states, key, method, tol, chosen, an, None, codeword)
-    stats = [EmbedStats(len(st.local0), int(st.skipped.sum()), int(np.any(st.v != st.v0, axis=1).sum()),
+    stats = [EmbedStats(len(st.local0), int(st.skipped.sum()), int(changed_rows(st.v, st.v0).sum()),
                         rounds[k], st.view) for k, st in enumerate(states)]
     return [st.v for st in states], stats, an
 
@@ -745,7 +745,7 @@ def _selections(states: list[_Mesh], key: str | bytes, method: str, tol: Toleran
         now = priorities(st.v, st.adj, st.labels, key)
         if same_order(chosen[k], now, st.adj, st.tied()):
             continue
-        moved = np.any(st.v != st.v0, axis=1)
+        moved = changed_rows(st.v, st.v0)
         out.append((k, now, reanalysed(an[k], st.v, st.adj, st.labels, key, method, now, moved, tol)))
     return out
 

@@ -58,7 +58,7 @@ from core.geosync import (
     surface_frame,
 )
 from core.hashing import derive
-from core.mesh import Adjacency, adjacency, bbox_diagonal
+from core.mesh import Adjacency, adjacency, bbox_diagonal, columns
 from core.options import METHODS, Options
 from core.parallel import SPLIT_FROM, beside, by_rows
 from core.reports import CapacityReport, DetectResult, EmbeddedFile, EmbedReport, Progress
@@ -377,18 +377,22 @@ def _distortion(doc: MeshDocument, new: list[np.ndarray], adjs: dict[int, Adjace
         haus = max(haus, float(d[moved[adj.degree[moved] == 0]].max(initial=0.0)))
         moved = moved[adj.degree[moved] > 0]
 
-        def nearest(part: np.ndarray, adj: Adjacency = adj, old: np.ndarray = p.vertices,
-                    v: np.ndarray = v) -> tuple[np.ndarray, np.ndarray]:
-            # nearest among the 1-ring, per moved vertex (runs of its degree)
+        def nearest(part: np.ndarray, adj: Adjacency = adj, old: tuple[np.ndarray, ...] = columns(p.vertices),
+                    now: tuple[np.ndarray, ...] = columns(v)) -> tuple[np.ndarray, np.ndarray]:
+            # nearest among the 1-ring, per moved vertex (runs of its degree), coordinate by
+            # coordinate (1-D gathers: 0.75 of the time of gathering rows at 1M vertices)
             if not part.size:
                 return np.zeros(0), np.zeros(0)
             first, pos = adj.ring_entries(part)
-            rows = np.repeat(part, adj.degree[part])
+            deg = adj.degree[part]
             nb = adj.indices[pos]
-            old_r, new_r = np.take(old, rows, axis=0), np.take(v, rows, axis=0)
-            old_n, new_n = np.take(old, nb, axis=0), np.take(v, nb, axis=0)
-            return (np.minimum.reduceat(_row_norms(new_r - old_n), first),
-                    np.minimum.reduceat(_row_norms(old_r - new_n), first))
+            to_old, to_new = np.zeros(len(nb)), np.zeros(len(nb))
+            for o, n in zip(old, now, strict=True):
+                e = np.repeat(np.take(n, part), deg) - np.take(o, nb)
+                to_old += e * e
+                e = np.repeat(np.take(o, part), deg) - np.take(n, nb)
+                to_new += e * e
+            return np.minimum.reduceat(np.sqrt(to_old), first), np.minimum.reduceat(np.sqrt(to_new), first)
 
         to_old, to_new = by_rows(nearest, moved)
         dm = d[moved]
