@@ -82,10 +82,28 @@ def test_neighbours_made_to_coincide_stay_apart() -> None:
     pos, tri = _grid()
     a, c = 14, 16  # two apart on one row: common neighbours 15 and others
     pos[c] = pos[a]
-    _v, f, s2v = weld(pos, tri)
+    v, f, s2v = weld(pos, tri)
     assert s2v[a] != s2v[c]
     assert _edge_use(f).max() <= 2
     assert len(np.unique(f)) == len(pos)
+    # the two kept apart are the welded vertex of their position and one more, not two new ones
+    # beside a vertex left with no slot (an isolated vertex, which moved the tie-break's centroid)
+    assert len(v) == len(pos) and np.bincount(s2v, minlength=len(v)).min() == 1
+
+
+def test_every_welded_vertex_keeps_a_slot() -> None:
+    """Quantised to a coarse grid (many neighbours on one position), every welded vertex is still
+    some slot's: the mesh has no vertex the file does not have."""
+    pos, tri = _grid(12)
+    rng = np.random.default_rng(5)
+    for step in (1.0, 2.0, 3.0):
+        q = np.round((pos + rng.uniform(-0.3, 0.3, pos.shape) * [1, 1, 0]) / step) * step
+        v, _f, s2v = weld(q, tri)
+        assert np.bincount(s2v, minlength=len(v)).min() >= 1
+        assert len(v) <= len(pos)
+    for p, t in _cases():
+        v, _f, s2v = weld(p, t)
+        assert np.bincount(s2v, minlength=len(v)).min(initial=1) >= 1
 
 
 def test_seam_copies_are_still_welded() -> None:
