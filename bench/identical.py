@@ -98,22 +98,18 @@ def fingerprint_any(name: str) -> dict[str, Any]:
     return _outcome(lambda: detect_file(data, KEY, filename=name, method=None))
 
 
-def _beyond_avx2() -> list[str]:
-    """numpy's dispatched CPU features of this host above AVX2 (x86-64-v3): the AVX-512 groups."""
-    try:
-        from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
-    except ImportError:  # another numpy layout: leave its kernels as they are
-        return []
-    return [f for f in __cpu_dispatch__ if __cpu_features__.get(f) and ("512" in f or f == "X86_V4")]
-
-
 def kernels() -> list[str]:
-    """The dispatched CPU features numpy uses in this process."""
+    """The dispatched CPU features numpy uses in this process (none known for another numpy layout)."""
     try:
         from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
     except ImportError:
         return []
     return sorted(f for f in __cpu_dispatch__ if __cpu_features__.get(f))
+
+
+def _beyond_avx2() -> list[str]:
+    """Those of :func:`kernels` above AVX2 (x86-64-v3): the AVX-512 groups."""
+    return [f for f in kernels() if "512" in f or f == "X86_V4"]
 
 
 @contextmanager
