@@ -91,6 +91,11 @@ def _run(records: JobRecords, blobs: BlobStore, job_id: str, *, timeout: float,
             task = decode_input(blobs.get(input_key(job_id)))
             set_request_id(task.request_id)
         except BlobNotFound:
+            state = records.state(job_id)
+            if state != "running":
+                # cancelled (or deleted) between this worker's start and its read: the cancel
+                # removes the upload, so this is the cancel, not a lost blob
+                raise JobCancelled(state) from None
             log.error("job %s: input blob missing from the blob store", job_id)
             missing = ProblemError(INTERNAL, "the job's upload is missing from the blob store")
             return "failed", missing.to_dict(), None

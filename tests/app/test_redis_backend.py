@@ -347,6 +347,28 @@ def test_cancel_stops_a_running_job(client, workers, records, slow_ply, blob_dir
 
 
 @needs_redis
+def test_a_cancel_that_removes_the_upload_before_the_read_is_a_stop(records, tmp_path, caplog):
+    """The race the test above met in CI: a DELETE between the worker's start and its read of the
+    upload removes the upload; the worker stops as cancelled (no internal error, no failed state).
+    A job still running whose upload is gone is the internal error it was."""
+    from app.blobs import LocalBlobStore
+    from app.redis_jobs.worker import _run
+
+    blobs = LocalBlobStore(tmp_path / "blobs")
+    for state, outcome in (("cancelled", "cancelled"), ("running", "failed")):
+        job_id = uuid.uuid4().hex
+        records.client.hset(records.keys.job(job_id), mapping={"state": state})
+        with caplog.at_level("INFO", logger="meshmark.workers"):
+            got, problem, result = _run(records, blobs, job_id, timeout=60.0, memory_mb=1024)
+        assert (got, result) == (outcome, None)
+        if outcome == "cancelled":
+            assert problem is None and f"job {job_id} stopped" in caplog.text
+        else:
+            assert problem is not None and "missing from the blob store" in problem["detail"]
+        records.client.delete(records.keys.job(job_id))
+
+
+@needs_redis
 def test_api_restart_loses_no_queued_job(redis_env, workers, sphere_obj):
     """With the workers not consuming, jobs wait in Redis; a new API process finds them, cancels
     one while queued, and the workers run the other once they consume again."""
