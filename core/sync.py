@@ -23,6 +23,7 @@ import numpy as np
 
 from core.hashing import combine, mix64
 from core.mesh import Adjacency
+from core.parallel import SPLIT_FROM, by_chunks
 
 #: rings of colour refinement (the label of a vertex depends on its ROUNDS-ring), then the
 #: larger neighbourhoods tried on regular meshes before the geometric fallback
@@ -79,9 +80,24 @@ def wl_colours(adj: Adjacency, rounds: int = ROUNDS, start: np.ndarray | None = 
         first = 0
     else:
         c = start
+    n = len(c)
+    if n < SPLIT_FROM:
+        for t in range(first, rounds):
+            c = combine(c, adj.ring_sum_u64(mix64(c ^ _round_salt(t))))
+        return c
+    # a large mesh in two row halves, the second in the rows' worker: each round's hashes, then its
+    # neighbour sums (the whole vector of hashes is needed first) and their combination
+    half = -(-n // 2)
     for t in range(first, rounds):
-        c = combine(c, adj.ring_sum_u64(mix64(c ^ np.uint64(0x5851F42D4C957F2D * (t + 1) % 2**64))))
+        salt = _round_salt(t)
+        m = np.concatenate(by_chunks(lambda lo, hi, c=c, salt=salt: mix64(c[lo:hi] ^ salt), n, half))
+        c = np.concatenate(by_chunks(lambda lo, hi, c=c, m=m: combine(c[lo:hi], adj.ring_block(lo, hi) @ m),
+                                     n, half))
     return c
+
+
+def _round_salt(t: int) -> np.uint64:
+    return np.uint64(0x5851F42D4C957F2D * (t + 1) % 2**64)
 
 
 def distinct_count(values: np.ndarray) -> int:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from dataclasses import replace
 
 import numpy as np
@@ -148,3 +149,35 @@ def test_cad_meshes_keep_their_connectivity_labels_and_surfaces_of_revolution_do
         if not regular:
             a = analyse(part.vertices, part.faces, "k", "planes")
             assert len(a.carriers) >= 0.1 * len(part.vertices), name
+
+
+def test_colour_refinement_in_two_row_halves_is_the_one_thread_refinement(monkeypatch) -> None:
+    # a large mesh refines its colours in two row halves, the second in the rows' worker: the same
+    # colours bit for bit, also when resumed from fewer rounds; and a block of the ring matrix gives
+    # its rows of the whole product
+    import core.parallel as parallel
+    import core.sync as sync
+
+    v, f = irregular_sphere(6000, 4)
+    adj = adjacency(f, len(v))
+    monkeypatch.setattr(sync, "SPLIT_FROM", 10**9)
+    one, three = wl_colours(adj, 9), wl_colours(adj, 3)
+    monkeypatch.setattr(sync, "SPLIT_FROM", 1000)
+    monkeypatch.setattr(parallel, "SPLIT_FROM", 1000)
+    seen: set[str] = set()
+    real = parallel.by_chunks
+
+    def spy(fn, total, size, split_from=None):
+        def where(lo, hi):
+            seen.add(threading.current_thread().name[:13])
+            return fn(lo, hi)
+        return real(where, total, size, split_from)
+
+    monkeypatch.setattr(sync, "by_chunks", spy)
+    assert np.array_equal(wl_colours(adj, 9), one)
+    assert np.array_equal(wl_colours(adj, 9, three, 3), one)
+    assert seen == {"MainThread", "meshmark-rows"}
+    x = np.random.default_rng(2).integers(0, 2**63, len(v), dtype=np.uint64)
+    whole = adj.ring_sum_u64(x)
+    for lo, hi in ((0, 2500), (2500, len(v)), (100, 101)):
+        assert np.array_equal(adj.ring_block(lo, hi) @ x, whole[lo:hi])
