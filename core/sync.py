@@ -90,9 +90,16 @@ def wl_colours(adj: Adjacency, rounds: int = ROUNDS, start: np.ndarray | None = 
     half = -(-n // 2)
     for t in range(first, rounds):
         salt = _round_salt(t)
-        m = np.concatenate(by_chunks(lambda lo, hi, c=c, salt=salt: mix64(c[lo:hi] ^ salt), n, half))
-        c = np.concatenate(by_chunks(lambda lo, hi, c=c, m=m: combine(c[lo:hi], adj.ring_block(lo, hi) @ m),
-                                     n, half))
+
+        def hashed(lo: int, hi: int, c: np.ndarray = c, salt: np.uint64 = salt) -> np.ndarray:
+            return mix64(c[lo:hi] ^ salt)
+
+        m = np.concatenate(by_chunks(hashed, n, half))
+
+        def refined(lo: int, hi: int, c: np.ndarray = c, m: np.ndarray = m) -> np.ndarray:
+            return combine(c[lo:hi], adj.ring_block(lo, hi) @ m)
+
+        c = np.concatenate(by_chunks(refined, n, half))
     return c
 
 
