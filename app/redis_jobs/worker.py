@@ -74,9 +74,14 @@ class _Progress(ThrottledProgress):
         self.records, self.job_id = records, job_id
 
     def emit(self, fraction: float) -> None:
-        state = self.records.progress(self.job_id, fraction)
-        if state != "running":
-            raise JobCancelled(state)
+        _unless_running(self.records.progress(self.job_id, fraction))
+
+
+def _unless_running(state: str | None) -> None:
+    """Stop the engine call (:class:`JobCancelled`) when the job's record no longer says
+    ``running``: cancelled or deleted meanwhile."""
+    if state != "running":
+        raise JobCancelled(state)
 
 
 def _run(records: JobRecords, blobs: BlobStore, job_id: str, *, timeout: float,
@@ -91,11 +96,9 @@ def _run(records: JobRecords, blobs: BlobStore, job_id: str, *, timeout: float,
             task = decode_input(blobs.get(input_key(job_id)))
             set_request_id(task.request_id)
         except BlobNotFound:
-            state = records.state(job_id)
-            if state != "running":
-                # cancelled (or deleted) between this worker's start and its read: the cancel
-                # removes the upload, so this is the cancel, not a lost blob
-                raise JobCancelled(state) from None
+            # cancelled (or deleted) between this worker's start and its read: the cancel removes
+            # the upload, so this is the cancel, not a lost blob
+            _unless_running(records.state(job_id))
             log.error("job %s: input blob missing from the blob store", job_id)
             missing = ProblemError(INTERNAL, "the job's upload is missing from the blob store")
             return "failed", missing.to_dict(), None
