@@ -104,6 +104,7 @@ def wl_colours(adj: Adjacency, rounds: int = ROUNDS, start: np.ndarray | None = 
 
 
 def _round_salt(t: int) -> np.uint64:
+    """What round ``t``'s colours are XORed with before they are hashed (each round its own)."""
     return np.uint64(0x5851F42D4C957F2D * (t + 1) % 2**64)
 
 
