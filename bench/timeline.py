@@ -38,7 +38,8 @@ from bench.common import KEY, environment, header, md_table
 
 #: frames from these files are the engine's
 CORE = str(Path(__file__).resolve().parents[1] / "core")
-THREADING = str(Path(threading.__file__).resolve().parent)
+#: a thread whose innermost frame is in one of these waits (a lock, a condition, a future's result)
+WAITING_IN = (threading.__file__, "concurrent/futures/")
 
 
 @dataclass
@@ -64,9 +65,9 @@ class Timeline:
 
 def _engine_frame(frame: FrameType | None) -> tuple[str, int, bool] | None:
     """Innermost frame of ``frame``'s stack that lies in ``core/``, and whether the thread is
-    blocked (its innermost frame is in :mod:`threading` or :mod:`concurrent.futures`)."""
-    blocked = frame is not None and (frame.f_code.co_filename.startswith(THREADING)
-                                     or "concurrent/futures" in frame.f_code.co_filename)
+    blocked (its innermost frame is in :mod:`threading` or :mod:`concurrent.futures`; other
+    standard-library frames are work)."""
+    blocked = frame is not None and any(w in frame.f_code.co_filename for w in WAITING_IN)
     f = frame
     while f is not None:
         name = f.f_code.co_filename

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import statistics
 import threading
 import time
 
@@ -24,17 +25,23 @@ def test_a_thread_waiting_on_the_rows_worker_is_waiting_and_the_worker_busy():
 
     def chunk(lo: int, hi: int) -> int:
         if threading.current_thread().name.startswith("meshmark-rows"):
-            time.sleep(0.3)  # the worker's chunk: the caller has nothing left but to wait for it
+            # the worker's chunk, in the standard library's Python code (work, not waiting): the
+            # caller has nothing left but to wait for it
+            end = time.perf_counter() + 0.3
+            while time.perf_counter() < end:
+                statistics.fmean(range(2000))
         return lo
 
     tl = sample(lambda: parallel.by_chunks(chunk, 2, 1, split_from=0), interval=0.002)
     assert tl.wall >= 0.3
     main = [s.where["main"] for s in tl.samples if "main" in s.where]
     waiting = [w for w in main if w[2]]
-    assert waiting and {w[0] for w in waiting} == {"core.parallel.by_chunks"}
+    at = [w[0] for w in waiting]
+    # waiting for the worker's chunk (and perhaps a sample of handing it over, in submit)
+    assert at.count("core.parallel.by_chunks") >= 0.9 * len(at)
     assert len(waiting) >= 0.6 * len(tl.samples)
     rows = [w for s in tl.samples for name, w in s.where.items() if name.startswith("meshmark-rows")]
-    assert rows and not any(w[2] for w in rows)  # sleeping in the chunk is the worker's own work
+    assert rows and not any(w[2] for w in rows)  # the chunk is the worker's own work
     text = report(tl)
     assert float(_row(text, "main")[3]) >= 0.2  # waiting seconds
     assert float(_row(text, "main")[1]) < 0.1   # busy seconds
