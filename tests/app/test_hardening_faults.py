@@ -21,7 +21,7 @@ import httpx
 import pytest
 
 from core import api
-from tests.app.conftest import assert_problem, make_client, wait_for
+from tests.app.conftest import assert_problem, detect, embed, make_client, wait_for
 from tests.app.real_server import alive, descendants, serve
 
 CANARY_KEY = "CANARY-KEY-c4f0-never-in-a-log"
@@ -35,10 +35,6 @@ def key_never_logged(caplog):
         assert CANARY_KEY not in record.getMessage()
 
 
-def _embed(client: Any, name: str, data: bytes) -> Any:
-    return client.post("/v1/embed", files={"mesh": (name, data)}, data={"key": CANARY_KEY})
-
-
 def _address_space_mb(pid: int) -> int:
     with open(f"/proc/{pid}/status") as f:
         match = re.search(r"VmSize:\s+(\d+) kB", f.read())
@@ -46,25 +42,21 @@ def _address_space_mb(pid: int) -> int:
     return int(match.group(1)) // 1024
 
 
-def _detect(client: Any, name: str, data: bytes) -> Any:
-    return client.post("/v1/detect", files={"mesh": (name, data)}, data={"key": CANARY_KEY})
-
-
 def _poison_beside_valid(client: Any, poison: bytes, valid: bytes, reference: bytes,
-                         send: Any = _embed) -> Any:
+                         send: Any = embed) -> Any:
     """The poison (sent by ``send``) on one worker and, while it runs, three valid requests on the
     other."""
     pool = client.app.state.pool
     with ThreadPoolExecutor(4) as threads:
-        bad = threads.submit(send, client, "poison.ply", poison)
+        bad = threads.submit(send, client, "poison.ply", poison, key=CANARY_KEY)
         wait_for(lambda: pool.running >= 1, timeout=10)
-        good = [threads.submit(_embed, client, "ok.ply", valid) for _ in range(3)]
+        good = [threads.submit(embed, client, "ok.ply", valid, key=CANARY_KEY) for _ in range(3)]
         for future in good:
             response = future.result(timeout=60)
             assert response.status_code == 200, response.text
             assert response.content == reference  # byte-identical next to a failing neighbour
         response = bad.result(timeout=60)
-    after = _embed(client, "ok.ply", valid)
+    after = embed(client, "ok.ply", valid, key=CANARY_KEY)
     assert after.status_code == 200 and after.content == reference
     wait_for(lambda: len(pool.live_workers()) == 2, timeout=20)  # the failed worker was replaced
     return response
@@ -86,7 +78,7 @@ def test_worker_over_its_time_limit_fails_alone(slow_ply, sphere_ply):
     # embeddings 0.1 s of CPU, but at the workers' lower priority (`NICENESS`) beside a busy
     # process they get a small share of a core: a 1 s limit timed them out too beside two busy loops
     with make_client(workers=2, job_timeout_seconds=4.0) as client:
-        response = _poison_beside_valid(client, slow_ply, sphere_ply, reference, send=_detect)
+        response = _poison_beside_valid(client, slow_ply, sphere_ply, reference, send=detect)
         assert "4 s" in assert_problem(response, 503, "timed-out")["detail"]
         assert 'meshmark_worker_restarts_total{reason="timeout"} 1' in client.get("/metrics").text
 
