@@ -81,13 +81,17 @@ class Adjacency:
     def ring_block(self, lo: int, hi: int) -> sp.csr_matrix:
         """Rows ``lo:hi`` of :attr:`ring_matrix`, sharing its arrays (made once per row range): a
         product per row block, each in its own thread, gives the whole product's rows bit for bit."""
-        blocks = self.__dict__.setdefault("_ring_blocks", {})
+        blocks = self._ring_blocks
         if (lo, hi) not in blocks:
             ring = self.ring_matrix
             ip = ring.indptr[lo:hi + 1]
             blocks[lo, hi] = sp.csr_matrix((ring.data[ip[0]:ip[-1]], ring.indices[ip[0]:ip[-1]], ip - ip[0]),
                                            shape=(hi - lo, ring.shape[1]), copy=False)
         return blocks[lo, hi]
+
+    @cached_property
+    def _ring_blocks(self) -> dict[tuple[int, int], sp.csr_matrix]:
+        return {}
 
     @cached_property
     def _real_ring(self) -> sp.csr_matrix:

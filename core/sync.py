@@ -81,15 +81,14 @@ def wl_colours(adj: Adjacency, rounds: int = ROUNDS, start: np.ndarray | None = 
     else:
         c = start
     n = len(c)
-    if n < SPLIT_FROM:
-        for t in range(first, rounds):
-            c = combine(c, adj.ring_sum_u64(mix64(c ^ _round_salt(t))))
+    if not n:
         return c
     # a large mesh in two row halves, the second in the rows' worker: each round's hashes, then its
-    # neighbour sums (the whole vector of hashes is needed first) and their combination
-    half = -(-n // 2)
+    # neighbour sums (the whole vector of hashes is needed first) and their combination; a smaller
+    # one in one piece, in this thread
+    half = -(-n // 2) if n >= SPLIT_FROM else n
     for t in range(first, rounds):
-        salt = _round_salt(t)
+        salt = np.uint64(0x5851F42D4C957F2D * (t + 1) % 2**64)
 
         def hashed(lo: int, hi: int, c: np.ndarray = c, salt: np.uint64 = salt) -> np.ndarray:
             return mix64(c[lo:hi] ^ salt)
@@ -101,11 +100,6 @@ def wl_colours(adj: Adjacency, rounds: int = ROUNDS, start: np.ndarray | None = 
 
         c = np.concatenate(by_chunks(refined, n, half))
     return c
-
-
-def _round_salt(t: int) -> np.uint64:
-    """What round ``t``'s colours are XORed with before they are hashed (each round its own)."""
-    return np.uint64(0x5851F42D4C957F2D * (t + 1) % 2**64)
 
 
 def distinct_count(values: np.ndarray) -> int:
