@@ -11,8 +11,9 @@ for work); a thread waiting on a future (``Future.result``, a lock) is counted u
 line that waits but listed apart as *waiting*, not busy.  Prints (or writes) markdown:
 
 * per thread: samples busy and waiting, as a share of the call;
-* the functions with the most thread-seconds (samples x interval, over all threads): the CPU the
-  call spends where, which is what shortens a two-core run once both cores are busy;
+* the functions with the most thread-seconds (busy samples x the wall time per sample, over all
+  threads): the CPU the call spends where, which is what shortens a two-core run once both cores
+  are busy;
 * the timeline in buckets of ``--bucket`` seconds: each thread's most frequent function, and how
   many of the two cores were busy on average (1.0 or less: one core idle for that stretch, the
   place to overlap work).
@@ -27,10 +28,11 @@ from __future__ import annotations
 
 import argparse
 import collections
+import functools
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
 
@@ -52,8 +54,7 @@ class Sample:
 @dataclass
 class Timeline:
     wall: float
-    interval: float
-    samples: list[Sample] = field(default_factory=list)
+    samples: list[Sample]
 
     def threads(self) -> list[str]:
         seen: dict[str, None] = {}
@@ -61,6 +62,12 @@ class Timeline:
             for name in s.where:
                 seen.setdefault(name, None)
         return list(seen)
+
+
+@functools.cache
+def _module(filename: str) -> str:
+    """``core.mesh`` for ``.../core/mesh.py`` (made once per file: the sampler holds the GIL)."""
+    return Path(filename).relative_to(Path(CORE).parent).with_suffix("").as_posix().replace("/", ".")
 
 
 def _engine_frame(frame: FrameType | None) -> tuple[str, int, bool] | None:
@@ -72,8 +79,7 @@ def _engine_frame(frame: FrameType | None) -> tuple[str, int, bool] | None:
     while f is not None:
         name = f.f_code.co_filename
         if name.startswith(CORE):
-            module = Path(name).relative_to(Path(CORE).parent).with_suffix("").as_posix().replace("/", ".")
-            return f"{module}.{f.f_code.co_name}", f.f_lineno, blocked
+            return f"{_module(name)}.{f.f_code.co_name}", f.f_lineno, blocked
         f = f.f_back
     return None
 
@@ -108,9 +114,7 @@ def sample(call, interval: float = 0.005) -> Timeline:
         t1 = time.perf_counter()
         stop.set()
         th.join()
-    out = Timeline(t1 - t0, interval)
-    out.samples = [Sample(s.t - t0, s.where) for s in samples if t0 <= s.t <= t1]
-    return out
+    return Timeline(t1 - t0, [Sample(s.t - t0, s.where) for s in samples if t0 <= s.t <= t1])
 
 
 def report(tl: Timeline, bucket: float = 0.1, top: int = 25) -> str:

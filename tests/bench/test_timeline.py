@@ -52,7 +52,7 @@ def test_report_adds_up_samples_per_thread_function_and_bucket():
     blocked = ("core.parallel.by_chunks", 3, True)
     samples = [Sample(k / 100, {"main": main_f if k < 6 else blocked, **({"side": side_f} if k % 2 else {})})
                for k in range(10)]
-    tl = Timeline(wall=0.1, interval=0.01, samples=samples)
+    tl = Timeline(wall=0.1, samples=samples)
     text = report(tl, bucket=0.05)
     assert _row(text, "main")[1:] == ["0.060", "0.60", "0.040"]
     assert _row(text, "side")[1:] == ["0.050", "0.50", "0.000"]
