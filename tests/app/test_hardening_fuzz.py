@@ -29,7 +29,8 @@ def seeds() -> list[tuple[str, bytes]]:
 
 @pytest.fixture(scope="module")
 def client() -> Iterator[TestClient]:
-    with make_client(workers=2, job_timeout_seconds=30) as c:
+    # a hang, not a slow machine, must pass the time limit (niced workers: test_hardening_schema.py)
+    with make_client(workers=2, job_timeout_seconds=100) as c:
         yield c
 
 
