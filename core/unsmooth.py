@@ -52,7 +52,7 @@ import scipy.sparse as sp
 
 from core.analysis import Analysis, method_moments, ring_boundaries, statistic
 from core.detection import adaptive_threshold, median
-from core.mesh import Adjacency
+from core.mesh import Adjacency, adjacency
 from core.slots import assign_slots
 from core.tolerances import TOL, Tolerances
 
@@ -148,7 +148,7 @@ def unsmooth_at(vertices: np.ndarray, walk: sp.csr_matrix, iterations: Sequence[
         block[j % width] = cur if at is None else cur[at]
         if j % width == width - 1 or j == degree - 1:
             lo = j - j % width
-            out += np.tensordot(c[:, lo:j + 1], block[: j - lo + 1], axes=(1, 0))
+            out += (c[:, lo:j + 1] @ block[: j - lo + 1].reshape(j - lo + 1, -1)).reshape(out.shape)
     isolated = np.asarray(walk.getnnz(axis=1) == 0)
     if at is not None:
         isolated = isolated[at]
@@ -223,28 +223,49 @@ class Scorer:
             if pairs > 0:
                 self.lengths.append((L, slots, pairs))
 
-    def rings(self, adj: Adjacency, part: int) -> np.ndarray:
-        """The vertices a part's statistics read: its kept carriers and their neighbours."""
-        c = self.carriers[part]
-        return np.unique(np.concatenate([c, adj.indices[adj.ring_entries(c)[1]]]))
-
     def score(self, z: list[np.ndarray]) -> float:
         """Largest agreement (standard deviations) over the codeword lengths of the kept
         carriers' statistics ``z`` (one array per part, in the kept carriers' order); 0 without
         two labels in one slot."""
+        return self.scores([z])[0]
+
+    def scores(self, zs: list[list[np.ndarray]]) -> list[float]:
+        """:meth:`score` of several positions' statistics at once, bit for bit: one vote per label
+        and position, then every position's slot sums of a codeword length in one ``bincount``
+        (each position's votes added in the order one position's are)."""
         if not self.lengths:
-            return 0.0
-        w = np.bincount(self.group, _votes(np.concatenate(z))) / self.count
-        w -= w.mean()
-        sq = float((w * w).sum())
-        var = sq / len(w)
-        if var <= 0:
-            return 0.0
-        best = 0.0
+            return [0.0] * len(zs)
+        w = np.stack([np.bincount(self.group, _votes(np.concatenate(z))) / self.count for z in zs])
+        w -= w.mean(axis=1, keepdims=True)
+        sq = (w * w).sum(axis=1)
+        var = sq / w.shape[1]
+        flat, rows = w.ravel(), np.arange(len(zs))[:, None]
+        best = np.zeros(len(zs))
         for L, slots, pairs in self.lengths:
-            s = np.bincount(slots, w, minlength=L)
-            best = max(best, (float((s * s).sum()) - sq) / (var * np.sqrt(2.0 * pairs)))
-        return best
+            s = np.bincount((slots + L * rows).ravel(), flat, minlength=L * len(zs)).reshape(-1, L)
+            best = np.maximum(best, ((s * s).sum(axis=1) - sq) / (var * np.sqrt(2.0 * pairs)))
+        return [float(b) if v > 0 else 0.0 for b, v in zip(best, var, strict=True)]
+
+
+def ring_mesh(adjs: Sequence[Adjacency], carriers: Sequence[np.ndarray]
+              ) -> tuple[np.ndarray, Adjacency, np.ndarray]:
+    """The 1-rings of the ``carriers`` of several meshes as one mesh of their own, the meshes'
+    vertices numbered one after another: its vertices (the carriers and their neighbours, sorted),
+    the adjacency of the carriers' faces on them, and the carriers' places among them.  Every
+    carrier keeps its neighbours in their order and its face of
+    :meth:`~core.mesh.Adjacency.corner`, so its ring statistics there are its own mesh's, bit for
+    bit, whatever the positions of the other vertices."""
+    rings, faces, places, base, size = [], [], [], 0, 0
+    for adj, c in zip(adjs, carriers, strict=True):
+        ring = np.unique(np.concatenate([c, adj.indices[adj.ring_entries(c)[1]]]))
+        touches = np.zeros(len(adj.degree), bool)
+        touches[c] = True
+        faces.append(np.searchsorted(ring, adj.faces[touches[adj.faces].any(axis=1)]) + size)
+        places.append(np.searchsorted(ring, c) + size)
+        rings.append(ring + base)
+        base, size = base + len(adj.degree), size + len(ring)
+    return (np.concatenate(rings), adjacency(np.concatenate(faces).reshape(-1, 3), size),
+            np.concatenate(places))
 
 
 def choose_iterations(parts: list[tuple[np.ndarray, Adjacency]], analyses: dict[str, list[Analysis]],
@@ -257,25 +278,19 @@ def choose_iterations(parts: list[tuple[np.ndarray, Adjacency]], analyses: dict[
     methods = list(analyses)
     scorer = Scorer(analyses[methods[0]], lengths)
     live = [k for k in range(len(parts)) if len(scorer.carriers[k])]
-    walks = {k: walk_matrix(parts[k][1]) for k in live}
-    rings = {k: scorer.rings(parts[k][1], k) for k in live}
-    # the statistics read only the rings; the other positions of these copies never matter
-    scratch = {k: np.array(parts[k][0], np.float64, copy=True) for k in live}
-
-    def scores(ns: list[int]) -> list[float]:
-        at = {k: unsmooth_at(parts[k][0], walks[k], ns, rings[k]) for k in live}
-        out = []
-        for i in range(len(ns)):
-            per_method: dict[str, list[np.ndarray]] = {m: [] for m in methods}
-            for k in live:
-                scratch[k][rings[k]] = at[k][i]
-                for m, z in _statistics(scratch[k], parts[k][1], scorer.carriers[k], methods, tol).items():
-                    per_method[m].append(z)
-            out.append(max(scorer.score(z) for z in per_method.values()))
-        return out
-
     if not live:
         return LADDER[0], 0.0
+    # the parts as one mesh; the statistics read only the carriers' rings, so each position is read
+    # on their mesh alone (:func:`ring_mesh`)
+    vertices = np.concatenate([parts[k][0] for k in live]).astype(np.float64, copy=False)
+    walk = sp.block_diag([walk_matrix(parts[k][1]) for k in live], format="csr")
+    rings, local, sel = ring_mesh([parts[k][1] for k in live], [scorer.carriers[k] for k in live])
+
+    def scores(ns: list[int]) -> list[float]:
+        z = [_statistics(at, local, sel, methods, tol) for at in unsmooth_at(vertices, walk, ns, rings)]
+        per_method = [scorer.scores([[zi[m]] for zi in z]) for m in methods]
+        return [max(s) for s in zip(*per_method, strict=True)]
+
     ladder = [n for n in LADDER if n <= MAX_ITERATIONS]
     tried = dict(zip(ladder, scores(ladder), strict=True))
     best = max(tried, key=lambda n: tried[n])

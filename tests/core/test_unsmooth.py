@@ -124,6 +124,42 @@ def test_score_sees_the_codeword() -> None:
     assert unsmooth.Scorer([_analysis(np.arange(k), hashes)], [76, 300]).score([z]) < 5.0
 
 
+def test_scores_of_many_positions_are_each_positions_score() -> None:
+    """The scorer reads several positions in one pass; each position's figure is the one it reads
+    alone, bit for bit (the choice of n compares them)."""
+    rng = np.random.default_rng(5)
+    k = 2500
+    hashes = rng.integers(0, 2**63, k, dtype=np.uint64)[rng.integers(0, 1800, k)]  # labels repeat
+    parts = (hashes[:1000], hashes[1000:])
+    scorer = unsmooth.Scorer([_analysis(np.arange(len(h)), h) for h in parts], [40, 76, 140, 141, 300])
+    bits = rng.integers(0, 2, 300) * 2.0 - 1.0
+    zs = [[rng.normal(size=1000), rng.normal(size=1500)] for _ in range(6)]
+    zs[2] = [z + 0.4 * bits[(h % np.uint64(140)).astype(np.int64)] for z, h in zip(zs[2], parts, strict=True)]
+    together = scorer.scores(zs)
+    assert together == [scorer.scores([z])[0] for z in zs]
+    assert together[2] > 10.0 > max(together[:2] + together[3:])
+
+
+def test_ring_mesh_reads_every_part_as_its_own_mesh() -> None:
+    """Two meshes' carriers on their rings' mesh: the statistics at any positions are those of
+    each whole mesh, bit for bit (the same neighbours in the same order, the same face for the
+    orientation), and only the rings' positions count."""
+    rng = np.random.default_rng(6)
+    meshes = [irregular_sphere(700, 1), irregular_sphere(400, 2)]
+    adjs = [adjacency(f, len(v)) for v, f in meshes]
+    carriers = [np.sort(rng.choice(len(v), 60, replace=False)) for v, _ in meshes]
+    rings, local, sel = unsmooth.ring_mesh(adjs, carriers)
+    assert len(rings) < sum(len(v) for v, _ in meshes)
+    moved = [v + 0.01 * rng.normal(size=v.shape) for v, _ in meshes]
+    methods = ["planes", "ellipsoids"]
+    alone = [unsmooth._statistics(v, adj, c, methods, unsmooth.TOL)
+             for v, adj, c in zip(moved, adjs, carriers, strict=True)]
+    on_rings = unsmooth._statistics(np.concatenate(moved)[rings], local, sel, methods, unsmooth.TOL)
+    for m in methods:
+        assert np.array_equal(on_rings[m], np.concatenate([a[m] for a in alone]))
+        assert np.count_nonzero(on_rings[m]) > 100
+
+
 @pytest.fixture(scope="module")
 def marked_sphere() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     v, f = irregular_sphere(6000, 1)
