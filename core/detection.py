@@ -241,7 +241,7 @@ def _slot_sums(slots: np.ndarray, raw: np.ndarray, sign: np.ndarray) -> np.ndarr
 
 
 def _posterior(slots: np.ndarray, raw: np.ndarray, sign: np.ndarray, sums: np.ndarray,
-               bits: np.ndarray) -> tuple[Decoded, float]:
+               bits: np.ndarray, confidence: bool = True) -> tuple[Decoded, float]:
     """Calibrated decoding: exact per-bit posteriors with LLR ``log((1 - p) / p)`` per vote.
 
     The carrier error rate ``p`` comes from the votes' agreement *within* slots, which does not
@@ -249,8 +249,13 @@ def _posterior(slots: np.ndarray, raw: np.ndarray, sign: np.ndarray, sums: np.nd
     ``E[S^2 - sum v^2] = n (n - 1) m^2`` per slot (method of moments).  Fitting ``p`` against the
     decoded codeword instead makes a wrong decoding look reliable.  With about one vote per slot
     (small meshes) there is no within-slot agreement to measure and the codeword fit is used.
+    ``confidence`` False (the embedder's check that a payload reads back, which looks at the
+    message only): the posteriors are not computed (an empty ``confidence``; the decoder's 2-3
+    passes over the trellis in Python were a fifth of a 256-bit capacity's trial embeddings).
     """
     p = _carrier_error_rate(slots, raw, sign, sums, lambda: conv.encode(bits))
+    if not confidence:
+        return Decoded(np.asarray(bits, np.uint8), np.zeros(0)), p
     dec = soft_decode(log_odds(p) * sums)
     # the confidence of the maximum-likelihood message's own bits (the posteriors' most likely
     # value of a doubtful bit may differ from it)
@@ -335,9 +340,9 @@ def _same_as_auto(analyses: list[Analysis], L: int, ranked: bool | None) -> bool
 
 
 def detect_analyses(per_method: dict[str, list[Analysis]], key: str | bytes,
-                    expected: np.ndarray | None = None) -> DetectResult:
+                    expected: np.ndarray | None = None, *, confidence: bool = True) -> DetectResult:
     """:func:`detect_views` with one view: the analyses of every part, for each method tried."""
-    return detect_views([(CONNECTIVITY, per_method)], key, expected)
+    return detect_views([(CONNECTIVITY, per_method)], key, expected, confidence=confidence)
 
 
 #: the layers a detection reads (``DetectResult.layer``): both layers' carriers together, the
@@ -391,7 +396,8 @@ def _compact_lengths(per_method: dict[str, list[Analysis]], lengths: list[int]) 
     return [n for n in lengths if n <= COMPACT_MAX_PAYLOAD] if scarce else []
 
 
-def detect_views(views: list[View], key: str | bytes, expected: np.ndarray | None = None) -> DetectResult:
+def detect_views(views: list[View], key: str | bytes, expected: np.ndarray | None = None, *,
+                 confidence: bool = True) -> DetectResult:
     """Decide from the views in turn; the first that reads the mark answers (``layer``).
 
     For each method, decoding variants (:data:`VARIANTS`) are tried in order over every explicit
@@ -400,6 +406,8 @@ def detect_views(views: list[View], key: str | bytes, expected: np.ndarray | Non
     offset along ``e1``), :func:`_which_method` answers.
     ``false_positive_probability`` is the union bound over every candidate of every view, whether
     or not it was reached (:func:`view_candidates`; the views share their methods).
+    ``confidence`` False: no per-bit posteriors (``bit_confidence`` empty), for a caller that only
+    asks whether the message reads (the embedder's checks); every other figure is the same.
     """
     lengths = [len(expected)] if expected is not None else list(range(1, MAX_PAYLOAD_BITS + 1))
     given = next((v for _, v in views if isinstance(v, dict)), {})
@@ -421,7 +429,7 @@ def detect_views(views: list[View], key: str | bytes, expected: np.ndarray | Non
         for method, analyses in per_method.items():
             by_analyses.setdefault(tuple(id(a) for a in analyses), []).append(method)
         decoders = [_MethodDecoder(names[0] if len(names) == 1 else None, per_method[names[0]], key, expected,
-                                   lengths, n_tries, fpp_total, compact)
+                                   lengths, n_tries, fpp_total, compact, confidence)
                     for names in by_analyses.values()]
         # variant by variant across the methods: a method that reads the mark the embedder's way
         # answers before any other is decoded the attack-tolerant ways
@@ -516,8 +524,9 @@ class _MethodDecoder:
 
     def __init__(self, method: str | None, analyses: list[Analysis], key: str | bytes,
                  expected: np.ndarray | None, lengths: list[int], n_tries: int, fpp_total: float,
-                 compact: list[int]) -> None:
+                 compact: list[int], confidence: bool = True) -> None:
         self.method, self.analyses, self.key, self.expected = method, analyses, key, expected
+        self.confidence = confidence
         self.compact = compact
         self.n_tries, self.fpp_total = n_tries, fpp_total
         self.code = key_code(key)
@@ -602,7 +611,7 @@ class _MethodDecoder:
         errors = int((msg[:KEY_CODE_BITS] != self.code).sum())
         if errors > KEY_CODE_MAX_ERRORS:
             return None
-        dec, p_err = _posterior(slots, raw, sign, sums, msg)
+        dec, p_err = _posterior(slots, raw, sign, sums, msg, self.confidence)
         return p_err, DetectResult(
             detected=True, payload=bits_to_str(dec.bits[:KEY_CODE_BITS]),
             bit_confidence=[round(float(c), 6) for c in dec.confidence[:KEY_CODE_BITS]],
@@ -653,7 +662,7 @@ class _MethodDecoder:
                 if not ok and (expected is None or (near is not None and near.bit_errors is not None
                                                     and errors is not None and near.bit_errors <= errors)):
                     continue
-                dec, p_err = _posterior(slots, raw, sign, sums, msg)
+                dec, p_err = _posterior(slots, raw, sign, sums, msg, self.confidence)
                 res = DetectResult(
                     detected=ok, payload=bits_to_str(payload),
                     bit_confidence=[round(float(c), 6) for c in dec.confidence[:n]],

@@ -691,7 +691,7 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
     moved, rms, mx, haus = _distortion(doc, new, adjs) if measured is None else measured.result()
     geo = [st.geometric for st in stats if st.geometric is not None and len(st.geometric.carriers)]
     layers = [CONNECTIVITY] + ([GEOMETRY] if geo and _reads_back(
-        detect_views([(GEOMETRY, {method: geo})], key, bits), bits) else [])
+        detect_views([(GEOMETRY, {method: geo})], key, bits, confidence=False), bits) else [])
     report(Milestones.MEASURED)
     rep = EmbedReport(method=method, strength=s, payload_bits=KEY_CODE_BITS if bits is None else len(bits),
                       key_derived=bits is None, codeword_bits=L, carriers=carriers,
@@ -776,7 +776,7 @@ def _verified(final: list[Analysis], key: str | bytes, method: str, bits: np.nda
     the report, :func:`_embed_doc`: without it the file still reads.)"""
     groups = [final] + [[a] for a in final if len(final) > 1 and own_copy(a.slot_hash, L)]
     for k, group in enumerate(groups):
-        if not _reads_back(detect_analyses({method: group}, key, bits), bits):
+        if not _reads_back(detect_analyses({method: group}, key, bits, confidence=False), bits):
             return False
         verify((k + 1) / len(groups))
     return True

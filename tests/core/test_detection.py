@@ -48,6 +48,23 @@ def test_the_key_derived_code_and_the_expected_payload() -> None:
     assert checked.detected and checked.bit_errors == 0 and checked.p_value == 2.0**-16
 
 
+TEN = np.array([1, 0, 1, 1, 0, 0, 1, 0, 1, 1], np.uint8)
+
+
+@pytest.mark.parametrize(("payload", "expected", "flip"),
+                         [(None, False, 0.0), (TEN, False, 0.0), (TEN, True, 0.0), (TEN, True, 0.45)])
+def test_without_confidences_the_same_answer(payload: np.ndarray | None, expected: bool, flip: float) -> None:
+    """The embedder's check asks for no per-bit posteriors: every other figure is the detection's
+    (the key-derived code, an explicit payload, an expected one, and the closest candidate of an
+    expected payload that does not read)."""
+    analyses = [carriers_reading(encode(KEY, payload), 400, 5, flip)]
+    full = detect_analyses({"planes": analyses}, KEY, payload if expected else None)
+    bare = detect_analyses({"planes": analyses}, KEY, payload if expected else None, confidence=False)
+    assert full.bit_confidence and bare.bit_confidence == []
+    assert full.detected == (flip == 0.0)
+    assert replace(bare, bit_confidence=full.bit_confidence) == full
+
+
 def test_the_code_absorbs_wrong_carriers() -> None:
     payload = np.array([0, 1] * 16, np.uint8)
     noisy = carriers_reading(encode(KEY, payload), 1200, 4, flip=0.15)
