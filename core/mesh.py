@@ -13,7 +13,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
-from core.parallel import CHUNK_ROWS, by_chunks
+from core.parallel import CHUNK_ROWS, by_chunks, row_block
 
 
 @dataclass(frozen=True)
@@ -83,10 +83,7 @@ class Adjacency:
         product per row block, each in its own thread, gives the whole product's rows bit for bit."""
         blocks = self._ring_blocks
         if (lo, hi) not in blocks:
-            ring = self.ring_matrix
-            ip = ring.indptr[lo:hi + 1]
-            blocks[lo, hi] = sp.csr_matrix((ring.data[ip[0]:ip[-1]], ring.indices[ip[0]:ip[-1]], ip - ip[0]),
-                                           shape=(hi - lo, ring.shape[1]), copy=False)
+            blocks[lo, hi] = row_block(self.ring_matrix, lo, hi)
         return blocks[lo, hi]
 
     @cached_property

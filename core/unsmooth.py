@@ -53,6 +53,7 @@ import scipy.sparse as sp
 from core.analysis import Analysis, method_moments, ring_boundaries, statistic
 from core.detection import adaptive_threshold, median
 from core.mesh import Adjacency, adjacency
+from core.parallel import halves_product
 from core.slots import assign_slots
 from core.tolerances import TOL, Tolerances
 
@@ -137,11 +138,12 @@ def unsmooth_at(vertices: np.ndarray, walk: sp.csr_matrix, iterations: Sequence[
     width = ACCUMULATE_BLOCK if len(cs) > 1 else 1
     block = np.empty((width if width > 1 else 0, q, 3))
     prev, cur = v, v
+    product = halves_product(walk)  # a large mesh's rows in two threads
     for j in range(degree):
         if j == 1:
-            cur = -(walk @ v)
+            cur = -product(v)
         elif j > 1:
-            prev, cur = cur, -2.0 * (walk @ cur) - prev
+            prev, cur = cur, -2.0 * product(cur) - prev
         if width == 1:
             out[0] += c[0, j] * (cur if at is None else cur[at])
             continue

@@ -3,6 +3,7 @@ cannot start a thread still gets its answer."""
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -40,3 +41,35 @@ def test_no_thread_to_start_gives_the_same_file(monkeypatch) -> None:
     alone, _ = embed_mesh(v, f, "k", method="ellipsoids")
     assert len(started) > 10  # every kind of split was asked for
     assert np.array_equal(threaded, alone)
+
+
+def test_a_product_in_two_row_halves_is_the_whole_product(monkeypatch) -> None:
+    # the unsmoothing's recurrence multiplies by the walk matrix in two row halves from SPLIT_FROM
+    # rows, the second in the rows' worker: the same product bit for bit, and the worker is used
+    from core import unsmooth
+    from core.mesh import adjacency
+
+    v, f = irregular_sphere(6000, 4)
+    walk = unsmooth.walk_matrix(adjacency(f, len(v)))
+    x = np.random.default_rng(7).normal(size=(len(v), 3))
+    monkeypatch.setattr(parallel, "SPLIT_FROM", 1000)
+    seen: set[str] = set()
+    real = parallel.row_block
+
+    def spy(matrix, lo, hi):
+        block = real(matrix, lo, hi)
+
+        class Seen:
+            def __matmul__(self, y):
+                seen.add(threading.current_thread().name[:13])
+                return block @ y
+        return Seen()
+
+    monkeypatch.setattr(parallel, "row_block", spy)
+    assert np.array_equal(parallel.halves_product(walk)(x), walk @ x)
+    assert seen == {"MainThread", "meshmark-rows"}
+    # and the recurrence through it gives what one thread gives
+    some = np.arange(0, len(v), 7)
+    split = unsmooth.unsmooth_at(v, walk, [10, 30], some)
+    monkeypatch.setattr(parallel, "SPLIT_FROM", 10**9)
+    assert np.array_equal(split, unsmooth.unsmooth_at(v, walk, [10, 30], some))
