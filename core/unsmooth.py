@@ -245,7 +245,8 @@ class Scorer:
         best = np.zeros(len(zs))
         for L, slots, pairs in self.lengths:
             s = np.bincount((slots + L * rows).ravel(), flat, minlength=L * len(zs)).reshape(-1, L)
-            best = np.maximum(best, ((s * s).sum(axis=1) - sq) / (var * np.sqrt(2.0 * pairs)))
+            with np.errstate(divide="ignore", invalid="ignore"):  # var 0: every vote alike, scored 0
+                best = np.maximum(best, ((s * s).sum(axis=1) - sq) / (var * np.sqrt(2.0 * pairs)))
         return [float(b) if v > 0 else 0.0 for b, v in zip(best, var, strict=True)]
 
 
@@ -285,7 +286,8 @@ def choose_iterations(parts: list[tuple[np.ndarray, Adjacency]], analyses: dict[
     # the parts as one mesh; the statistics read only the carriers' rings, so each position is read
     # on their mesh alone (:func:`ring_mesh`)
     vertices = np.concatenate([parts[k][0] for k in live]).astype(np.float64, copy=False)
-    walk = sp.block_diag([walk_matrix(parts[k][1]) for k in live], format="csr")
+    walks = [walk_matrix(parts[k][1]) for k in live]
+    walk = walks[0] if len(walks) == 1 else sp.block_diag(walks, format="csr")
     rings, local, sel = ring_mesh([parts[k][1] for k in live], [scorer.carriers[k] for k in live])
 
     def scores(ns: list[int]) -> list[float]:

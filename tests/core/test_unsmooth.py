@@ -135,9 +135,11 @@ def test_scores_of_many_positions_are_each_positions_score() -> None:
     bits = rng.integers(0, 2, 300) * 2.0 - 1.0
     zs = [[rng.normal(size=1000), rng.normal(size=1500)] for _ in range(6)]
     zs[2] = [z + 0.4 * bits[(h % np.uint64(140)).astype(np.int64)] for z, h in zip(zs[2], parts, strict=True)]
+    zs[4] = [np.full(1000, 0.3), np.full(1500, 0.3)]  # every vote alike: no agreement, no warning
     together = scorer.scores(zs)
     assert together == [scorer.scores([z])[0] for z in zs]
     assert together[2] > 10.0 > max(together[:2] + together[3:])
+    assert together[4] == 0.0
 
 
 def test_ring_mesh_reads_every_part_as_its_own_mesh() -> None:
