@@ -121,6 +121,8 @@ def parser() -> argparse.ArgumentParser:
     ck = sub.add_parser("capacity-keys", parents=[common],
                         help="capacity with many keys, then every payload length it allows embedded")
     ck.add_argument("--keys", type=int, default=50, help="keys key-0 ... (default: %(default)s)")
+    ck.add_argument("--first-key", type=int, default=0,
+                    help="the first key's number: keys key-F ... key-(F+K-1) (default: %(default)s)")
     ck.add_argument("--payloads", type=int, default=2,
                     help="random payloads per length (default: %(default)s)")
     return p

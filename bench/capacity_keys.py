@@ -1,11 +1,12 @@
 """Does ``capacity`` say exactly what embeds?  For many keys, every payload length it allows is embedded.
 
-    .venv/bin/python -m bench capacity-keys [--keys 50] [--payloads 2] [--meshes NAME ...] [--jobs 2]
-                                           [--out bench/results] [--seed 2006]
+    .venv/bin/python -m bench capacity-keys [--keys 50] [--first-key 0] [--payloads 2] [--meshes NAME ...]
+                                           [--jobs 2] [--out bench/results] [--seed 2006]
 
 For every mesh (default: the small models and scenes of :data:`MESHES`), both methods and no method
-(``default``: what MeshMark chooses, :data:`core.options.AUTO_METHOD`) and keys
-``key-0`` ... ``key-{K-1}``, at the default strength: ``capacity`` with the key gives
+(``default``: what MeshMark chooses, :data:`core.options.AUTO_METHOD`) and keys ``key-F`` ...
+``key-{F+K-1}`` (``--first-key`` F, default 0: a run from another F has keys of its own), at the
+default strength: ``capacity`` with the key gives
 ``M = max_payload_bits``; then ``--payloads`` random payloads of each length M, M - 1, ceil(M / 2), 1
 and two random lengths in [1, M] are embedded with that key and method (an embedding is only
 returned when it reads back, so a refusal is a failure of capacity's promise).  A separate row
@@ -76,7 +77,7 @@ def run_one(name: str, method: str, key: str, payloads: int, seed: int) -> dict[
 
 def run(args: Any) -> None:
     names = args.meshes or MESHES
-    keys = [f"key-{i}" for i in range(args.keys)]
+    keys = [f"key-{i}" for i in range(args.first_key, args.first_key + args.keys)]
     jobs = [(n, m, k) for n in names for m in ASKED for k in keys]
     started = time.perf_counter()
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
@@ -101,7 +102,8 @@ def run(args: Any) -> None:
     fail_rows = [[r["mesh"], r["method"], r["key"], r["max_payload_bits"], f["length"], f["error"][:110]]
                  for r in rows for f in r["failures"]]
     text = header("Capacity says what embeds: many keys, every allowed length", env, [
-        f"- {len(keys)} keys (`key-0`...), {args.payloads} random payloads per length, default strength; "
+        f"- {len(keys)} keys (`{keys[0]}`...`{keys[-1]}`), {args.payloads} random payloads per length, "
+        "default strength; "
         f"{len(jobs)} capacity calls in {seconds:.0f} s ({args.jobs} processes)",
         "",
     ])

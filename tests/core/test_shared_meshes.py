@@ -192,6 +192,21 @@ def test_capacity_with_the_key_is_exact_on_small_models(name: str, method: str, 
             assert detect_file(marked.data, key, filename=name, method=method).payload == payload, (key, n)
 
 
+@pytest.mark.xfail(strict=True, raises=CapacityError,
+                   reason="open in issue 14: capacity offers 24 bits here, this 24-bit payload is refused")
+def test_a_payload_capacity_offers_on_the_milk_truck_embeds() -> None:
+    """The counterexample of ``bench capacity-keys --first-key 50`` (stop 44, 1 refusal in 8,638
+    trial embeddings of 50 new keys): CesiumMilkTruck with ellipsoids and key-87, where capacity's
+    8 random trial payloads of 24 bits embed and this one does not (27 of its 220 carriers over the
+    displacement ceiling; planes carries it).  Strict: the day it embeds, this fails and says so."""
+    data = shared_mesh_path("CesiumMilkTruck.glb").read_bytes()
+    options = Options(key="key-87", method="ellipsoids")
+    assert capacity(data, options, filename="CesiumMilkTruck.glb").max_payload_bits == 24
+    payload = "000100011011100110000100"
+    marked = embed_file(data, "key-87", filename="CesiumMilkTruck.glb", payload=payload, method="ellipsoids")
+    assert detect_file(marked.data, "key-87", filename="CesiumMilkTruck.glb").payload == payload
+
+
 def test_a_payload_at_the_edge_gets_the_relaxed_last_pass() -> None:
     """Spot with planes, key-9: capacity offers 188 bits (8 random payloads embed), this 188-bit one
     does not embed in the strict tries without the retries of other slots or of carriers held still
