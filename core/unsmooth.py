@@ -225,16 +225,12 @@ class Scorer:
             if pairs > 0:
                 self.lengths.append((L, slots, pairs))
 
-    def score(self, z: list[np.ndarray]) -> float:
-        """Largest agreement (standard deviations) over the codeword lengths of the kept
-        carriers' statistics ``z`` (one array per part, in the kept carriers' order); 0 without
-        two labels in one slot."""
-        return self.scores([z])[0]
-
     def scores(self, zs: list[list[np.ndarray]]) -> list[float]:
-        """:meth:`score` of several positions' statistics at once, bit for bit: one vote per label
-        and position, then every position's slot sums of a codeword length in one ``bincount``
-        (each position's votes added in the order one position's are)."""
+        """Per position, the largest agreement (standard deviations) over the codeword lengths of
+        the kept carriers' statistics (``zs``: per position one array per part, in the kept
+        carriers' order); 0 without two labels in one slot.  One vote per label and position,
+        then every position's slot sums of a codeword length in one ``bincount`` (each position's
+        votes added in the order they would be alone: the same figures bit for bit)."""
         if not self.lengths:
             return [0.0] * len(zs)
         w = np.stack([np.bincount(self.group, _votes(np.concatenate(z))) / self.count for z in zs])

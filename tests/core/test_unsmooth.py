@@ -98,10 +98,10 @@ def test_score_counts_a_label_once() -> None:
     hashes = rng.integers(0, 2**63, k, dtype=np.uint64)
     z = rng.normal(size=k)
     lengths = [76, 92, 140]
-    alone = unsmooth.Scorer([_analysis(np.arange(k), hashes)], lengths).score([z])
+    alone = unsmooth.Scorer([_analysis(np.arange(k), hashes)], lengths).scores([[z]])[0]
     # every label of the first 1000 carriers repeated 10 times, with its vote
     rep = np.r_[np.arange(k), np.repeat(np.arange(1000), 10)]
-    repeated = unsmooth.Scorer([_analysis(np.arange(len(rep)), hashes[rep])], lengths).score([z[rep]])
+    repeated = unsmooth.Scorer([_analysis(np.arange(len(rep)), hashes[rep])], lengths).scores([[z[rep]]])[0]
     assert abs(alone) < 5.0 and abs(repeated) < 5.0
     # counted one by one, the same repeated votes agree by far more (what the score avoids)
     votes = unsmooth._votes(z[rep])
@@ -120,8 +120,8 @@ def test_score_sees_the_codeword() -> None:
     bits = rng.integers(0, 2, 140) * 2.0 - 1.0
     z = 0.3 * bits[(hashes % np.uint64(140)).astype(np.int64)] + rng.normal(size=k)
     scorer = unsmooth.Scorer([_analysis(np.arange(k), hashes)], [76, 140, 300])
-    assert scorer.score([z]) > 10.0
-    assert unsmooth.Scorer([_analysis(np.arange(k), hashes)], [76, 300]).score([z]) < 5.0
+    assert scorer.scores([[z]])[0] > 10.0
+    assert unsmooth.Scorer([_analysis(np.arange(k), hashes)], [76, 300]).scores([[z]])[0] < 5.0
 
 
 def test_scores_of_many_positions_are_each_positions_score() -> None:
