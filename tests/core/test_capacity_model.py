@@ -89,6 +89,8 @@ def test_capacity_tries_every_payload_of_a_few_bits() -> None:
     assert len(set(three)) == 14 and {len(p) for p in three} == {1, 2, 3}
     four = pipeline._trial_payloads(rng, 4)
     assert len(four) == pipeline.CAPACITY_TRIALS and {len(p) for p in four} == {4}
+    edge = pipeline._trial_payloads(rng, 24, pipeline.CAPACITY_EDGE_TRIALS)
+    assert len(edge) == pipeline.CAPACITY_EDGE_TRIALS and {len(p) for p in edge} == {24}
 
 
 @pytest.mark.parametrize(("method", "key", "least"), [
