@@ -533,14 +533,15 @@ def embed_file(data: bytes, key: str | bytes, *, filename: str | None = None, pa
 
 def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: bool = True,
                compact_rounds: int | None = None, reslotted: list[bool] | None = None, reslot: bool = True,
-               relax: bool = True, clip: float = TOL.clip_margin
+               relax: bool = True, clip: float = TOL.clip_margin, compact_probes: CompactProbes | None = None
                ) -> tuple[list[np.ndarray], EmbedReport, int | None]:
     """Embed into every usable part; ``probe``: a refusal says what would fit instead;
     ``reslot``: when every try fails, try slots other than the embedder's own (ranked again for the
     selection its moves made, then the other assignment); ``reslotted``: True is appended when the
     embedding read back only that way (or with carriers held still, :data:`_STILL`); ``relax``:
     before a refusal, the widest tries once more with carriers cut at the ceiling kept from
-    :data:`RELAXED_CLIP` x the strength (``clip``: this pass's).
+    :data:`RELAXED_CLIP` x the strength (``clip``: this pass's); ``compact_probes``: the compact frame's
+    probes of earlier embeddings of the same file, key and strength (:func:`_embed_compact`).
 
     The standard frame first; a payload of at most :data:`~core.coding.COMPACT_MAX_PAYLOAD` bits
     that it cannot carry on a mesh of few carriers gets the compact frame (:func:`_embed_compact`)."""
@@ -656,7 +657,8 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
                                      [(f, d) for f in CAP_FACTORS for d in decs[:1]]
                                      + [(CAP_FACTORS[-1], d) for d in decs[1:]],
                                      lambda dec: _part_quantizer(doc, parts, dec),
-                                     COMPACT_ROUNDS if compact_rounds is None else compact_rounds)
+                                     COMPACT_ROUNDS if compact_rounds is None else compact_rounds,
+                                     compact_probes)
         if compact is None:
             tried = (f"; the compact {COMPACT_BITS}-bit frame (CRC-32, no error correction) did not read "
                      "back either"
@@ -669,7 +671,7 @@ def _embed_doc(doc: MeshDocument, options: Options, report: Progress, probe: boo
                     try:
                         return _embed_doc(doc, replace(options, method=other), after, probe=False,
                                           compact_rounds=compact_rounds, reslotted=reslotted, reslot=reslot,
-                                          relax=False, clip=clip)
+                                          relax=False, clip=clip, compact_probes=compact_probes)
                     except CapacityError:
                         tried += f"; method={other} did not read back either"
             if relax and not too_few:
@@ -871,6 +873,9 @@ def _placements(meshes: list[tuple[np.ndarray, np.ndarray]], adjs: Sequence[Adja
 
 #: embeddings of the compact frame per displacement cap, each with the constraints of the last slot maps
 COMPACT_ROUNDS = 64
+#: the compact frame's two probes (every carrier asked 0, then 1) by (method, strength, cap factor,
+#: decimals): the detector's analyses after each (:func:`_embed_compact`)
+CompactProbes = dict[tuple[str, float, float, int | None], tuple[list[Analysis], ...]]
 #: slot maps (of the last embeddings) whose constraints a compact codeword meets together
 COMPACT_MAPS = 3
 #: a slot is held to one value unless its free carriers can outvote the others by this much
@@ -885,7 +890,8 @@ def compact_rule(slot_hashes: list[np.ndarray], length: int) -> list[np.ndarray]
 def _embed_compact(meshes: list[tuple[np.ndarray, np.ndarray]], prepared: list[tuple[Adjacency, Labels]],
                    key: str | bytes, method: str, s: float, bits: np.ndarray, diagonal: float,
                    tries: list[tuple[float, int | None]], quantizer: Callable[[int | None], Quantize],
-                   rounds: int = 64) -> tuple[list[np.ndarray], list[EmbedStats], float, int | None] | None:
+                   rounds: int = 64, cached: CompactProbes | None = None
+                   ) -> tuple[list[np.ndarray], list[EmbedStats], float, int | None] | None:
     """Embed ``bits`` in the compact frame, choosing its free bits (a wet-paper code).
 
     Two probe embeddings ask every carrier for 0, then for 1: a carrier that does not read one of
@@ -897,7 +903,9 @@ def _embed_compact(meshes: list[tuple[np.ndarray, np.ndarray]], prepared: list[t
     with those of up to :data:`COMPACT_MAPS` earlier ones while the system stays solvable, up to
     ``rounds`` (:data:`COMPACT_ROUNDS`) times.  ``tries``: (cap factor, decimals) in turn; a try whose probes
     read exactly as an earlier one's (the ceiling, not the cap, limits every move) is skipped.
-    ``None`` when no try reads back."""
+    ``cached``: the probes' analyses by (method, strength, cap factor, decimals), filled and reused
+    (they do not depend on the payload: capacity's trials embed many payloads in one file with one
+    key).  ``None`` when no try reads back."""
     L = COMPACT_BITS
     b0, d = compact_codeword(key, bits)
     white = compact_whitening(key)
@@ -914,8 +922,12 @@ def _embed_compact(meshes: list[tuple[np.ndarray, np.ndarray]], prepared: list[t
 
         # reach[v][k]: per vertex of mesh k, whether it reads raw bit v when asked (True where unknown)
         reach: list[list[np.ndarray]] = []
-        for value in (0, 1):
-            _, _, an = run(np.full(L, value, np.uint8))
+        asked = None if cached is None else cached.get((method, s, factor, dec))
+        if asked is None:
+            asked = tuple(run(np.full(L, value, np.uint8))[2] for value in (0, 1))
+            if cached is not None:
+                cached[(method, s, factor, dec)] = asked
+        for value, an in enumerate(asked):
             ok = [np.ones(len(v), bool) for v, _ in meshes]
             for k, a in enumerate(an):
                 ok[k][a.carriers] = (a.z > 0) if value == 0 else (a.z < 0)
@@ -1011,12 +1023,13 @@ def _what_fits(doc: MeshDocument, options: Options) -> str:
 
 
 def _embeds(doc: MeshDocument, options: Options, compact_rounds: int | None = None,
-            reslotted: list[bool] | None = None, reslot: bool = True) -> bool:
+            reslotted: list[bool] | None = None, reslot: bool = True,
+            compact_probes: CompactProbes | None = None) -> bool:
     """Whether ``options`` embed without the relaxed last pass (what capacity's trials and a
     refusal's hints promise, an embedding has that pass in reserve)."""
     try:
         _embed_doc(doc, options, _no_progress, probe=False, compact_rounds=compact_rounds,
-                   reslotted=reslotted, reslot=reslot, relax=False)
+                   reslotted=reslotted, reslot=reslot, relax=False, compact_probes=compact_probes)
     except CapacityError:
         return False
     return True
@@ -1342,6 +1355,7 @@ def _verified_payload(doc: MeshDocument, options: Options, bound: int,
             [n for n in CAPACITY_LADDER if n < top]
 
     todo = ladder(top)
+    probes: CompactProbes = {}  # the compact frame's probes, the same for every trial payload
     # trials alone decide the compact frame's lengths on a mesh of few carriers that the model does
     # not cover (the Sink: regular labels, so every embedding selects slightly other carriers and
     # the compact frame succeeds or not by chance): the highest such length whose trials pass can
@@ -1363,8 +1377,8 @@ def _verified_payload(doc: MeshDocument, options: Options, bound: int,
         every = _exhaustive(n)
         rounds = None if every else CAPACITY_EDGE_ROUNDS if edge else CAPACITY_COMPACT_ROUNDS
         reslot = every or held is not None
-        ok = all(_embeds(doc, replace(options, payload=p), rounds, reslotted, reslot=reslot)
-                 for p in payloads)
+        ok = all(_embeds(doc, replace(options, payload=p), rounds, reslotted, reslot=reslot,
+                         compact_probes=probes) for p in payloads)
         if reslotted and trusted and held is not None:
             trusted = False
             hashed = held(False)

@@ -313,3 +313,23 @@ def test_crops_of_a_mesh_marked_near_its_budget_read_without_the_cut(monkeypatch
                 assert res.payload == PAYLOAD64[:32] and res.crc_ok and res.layer == "connectivity"
                 found[interior] += 1
     assert found[True] >= found[False] + 2
+
+
+def test_compact_probes_shared_between_embeddings_change_nothing() -> None:
+    """Capacity's trials share the compact frame's two probes (they do not depend on the payload):
+    embeddings with a shared cache are the embeddings without it, vertex for vertex, and the cache
+    is filled on the first and read on the second."""
+    from core.coding import COMPACT_BITS
+    from core.pipeline import _embed_doc, _no_progress
+
+    doc = read_mesh(shared_mesh_path("CesiumMilkTruck.glb").read_bytes(), "CesiumMilkTruck.glb")
+    cache: dict = {}
+    first: dict = {}
+    for payload in ("0110100000010100", "1011001000100011"):
+        options = Options(key="key-87", method="ellipsoids", payload=payload)
+        shared = _embed_doc(doc, options, _no_progress, probe=False, compact_probes=cache)
+        alone = _embed_doc(doc, options, _no_progress, probe=False)
+        assert shared[1].codeword_bits == alone[1].codeword_bits == COMPACT_BITS
+        assert all(np.array_equal(a, b) for a, b in zip(shared[0], alone[0], strict=True))
+        first = first or dict(cache)
+    assert first and all(cache[k] is v for k, v in first.items())
