@@ -1290,7 +1290,7 @@ def _exhaustive(n: int) -> bool:
 
 
 def _trial_payloads(rng: np.random.Generator, n: int, count: int = CAPACITY_TRIALS) -> list[str]:
-    """The payloads capacity embeds to offer ``n`` bits: :data:`CAPACITY_TRIALS` random ones, or,
+    """The payloads capacity embeds to offer ``n`` bits: ``count`` random ones, or,
     where every payload of every length up to ``n`` is no more than twice that many (``n`` <= 3),
     all of them, so that what capacity offers there is exact (the Sink with ellipsoids, key-36:
     2 bits offered after 8 random trials, and 2 of the 4 payloads refused)."""
@@ -1335,7 +1335,9 @@ def _verified_payload(doc: MeshDocument, options: Options, bound: int,
     of the ladder below it; with ``held`` (:func:`_held_payload`: every length up to it holds
     whatever the payload), the rungs above it that only the compact frame carries (``compact``: a
     mesh of few carriers, up to :data:`~core.coding.COMPACT_MAX_PAYLOAD` bits), then ``held`` and
-    the rungs below it.  When a trial reads back only with slots other than the embedder's (the
+    the rungs below it.  A rung above ``held`` is the trials' alone: it needs
+    :data:`CAPACITY_EDGE_TRIALS` payloads, each read within :data:`CAPACITY_EDGE_ROUNDS` compact
+    rounds.  When a trial reads back only with slots other than the embedder's (the
     selection moved under a payload's moves, :func:`_embed_doc`), ranked slots are not trusted for
     this key: ``held`` is what the hashed slots hold, and the walk goes on from there.  Without
     ``held`` (a file the model does not cover) the trials do not use those other slots: eight
