@@ -77,11 +77,14 @@ def viterbi(llrs: list[np.ndarray]) -> list[np.ndarray]:
     b = len(llrs)
     half = STATES // 2
     # the trellises end together: trellis i starts at step top - steps[i] (in state 0) and all are
-    # in their tail, whose inputs are 0, over the last TAIL steps
-    begin = top - steps
+    # in their tail, whose inputs are 0, over the last TAIL steps.  They are stacked longest first,
+    # so that the ones a step has started are the first rows: a step computes those only (a batch
+    # of candidate lengths 42-294 steps long does half the work of every row at every step)
+    order = np.argsort(-steps, kind="stable")
+    begin = top - steps[order]
     y = np.zeros((top, b, RATE))
-    for i, v in enumerate(llrs):
-        y[begin[i]:, i] = np.asarray(v, np.float64).reshape(-1, RATE)
+    for row, i in enumerate(order):
+        y[begin[row]:, row] = np.asarray(llrs[i], np.float64).reshape(-1, RATE)
     # c[:, k, j, x]: into next state ns = 2 j + x from its predecessor j + k S / 2 (_PRED[k]), so
     # gathering the predecessors' metrics is a broadcast of the metric vector's two halves (the
     # butterfly); the branch metrics of every step are one product with the LLRs (_SIGN_T), made
@@ -90,30 +93,44 @@ def viterbi(llrs: list[np.ndarray]) -> list[np.ndarray]:
     branch = (y.reshape(top * b, RATE) @ _SIGN_T).reshape(top, b, 2, half, 2)
     start = np.full(STATES, -1e300)
     start[0] = 0.0
-    metric = np.tile(start, (b, 1)).reshape(b, 2, half, 1)
-    spare = np.empty((b, half, 2))
+    # two metric buffers, each seen as a step's input (rows, 2, half, 1) and as its output (rows,
+    # half, 2); a step swaps them.  The views of the rows started so far are made when a trellis
+    # starts, not at every step
+    bufs = [np.tile(start, (b, 1)), np.empty((b, STATES))]
     back = np.empty((top, b, half, 2), np.uint8)
-    starts = {int(t) for t in begin[begin > 0]}
     c = np.empty((b, 2, half, 2))
-    c0, c1 = c[:, 0], c[:, 1]
+    started = np.searchsorted(begin, np.arange(top), side="right")  # rows started by each step
+    k = -1
     for t in range(top):
-        if t in starts:
-            metric.reshape(b, STATES)[begin == t] = start
-        np.add(metric, branch[t], out=c)
-        np.greater(c1, c0, out=back[t], casting="unsafe")
-        np.maximum(c0, c1, out=spare)
+        now, nxt = t & 1, (t + 1) & 1
+        if started[t] != k:
+            k0, k = max(k, 0), int(started[t])
+            bufs[now][k0:k] = start  # (the first step: rows begun at 0 are already at the start)
+            ins = [x[:k].reshape(k, 2, half, 1) for x in bufs]
+            outs = [x[:k].reshape(k, half, 2) for x in bufs]
+            ck, bk, dk = c[:k], branch[:, :k], back[:, :k]
+            c0, c1 = ck[:, 0], ck[:, 1]
+        np.add(ins[now], bk[t], out=ck)
+        np.greater(c1, c0, out=dk[t], casting="unsafe")
+        np.maximum(c0, c1, out=outs[nxt])
         if t >= top - TAIL:
-            spare[:, :, 1] = -1e300
-        metric, spare = spare.reshape(b, 2, half, 1), metric.reshape(b, half, 2)
-    state = np.zeros(b, np.int64)
-    bits = np.zeros((top, b), np.uint8)
-    # the surviving predecessor's high bit, in place: state ns came from (ns >> 1) | back << (TAIL - 1)
-    high = back.reshape(top, -1).astype(np.int64) << (TAIL - 1)
-    rows = np.arange(b) * STATES
-    for t in range(top - 1, -1, -1):
-        bits[t] = state & 1
-        state = (state >> 1) | high[t, rows + state]
-    return [bits[begin[i]:top - TAIL, i].copy() for i in range(b)]
+            outs[nxt][:, :, 1] = -1e300
+    # the traceback, one trellis at a time over the decisions as bytes: a step is a few integer
+    # operations, where whole-array steps cost numpy's per-call time (about 3 us each) for a batch
+    # of a few trellises.  State ns came from (ns >> 1) | back << (TAIL - 1)
+    flat = back.reshape(top, b * STATES).tobytes()
+    stride, shift = b * STATES, TAIL - 1
+    out: list[np.ndarray] = [np.empty(0, np.uint8)] * b
+    for i, row_i in zip(order, range(b), strict=True):
+        lo, hi = int(begin[row_i]), top - TAIL
+        bits = bytearray(top - lo)
+        state, at = 0, (top - 1) * stride + row_i * STATES
+        for t in range(top - 1, lo - 1, -1):
+            bits[t - lo] = state & 1
+            state = (state >> 1) | (flat[at + state] << shift)
+            at -= stride
+        out[i] = np.frombuffer(bytes(bits[: hi - lo]), np.uint8).copy()
+    return out
 
 
 def posteriors(llr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -93,3 +93,20 @@ def test_viterbi_is_maximum_likelihood_in_a_batch_of_mixed_lengths(lengths: list
         every = (np.arange(2**n)[:, None] >> np.arange(n)[None, :]) & 1
         scores = [float(y @ (1.0 - 2.0 * conv.encode(m))) for m in every]
         assert np.array_equal(got, every[int(np.argmax(scores))])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.integers(0, 120), min_size=1, max_size=9), st.integers(0, 2**32 - 1), st.booleans())
+def test_a_batch_decodes_every_trellis_as_it_decodes_alone(lengths: list[int], seed: int, ties: bool) -> None:
+    """The batch's trellises are computed longest first, each from the step it starts at, and traced
+    back one by one: whatever the order of the lengths (repeats and empty messages included) and
+    with tied metrics (small integer LLRs, zeros), each gets exactly the message it gets alone."""
+    rng = np.random.default_rng(seed)
+    if ties:
+        llrs = [rng.integers(-2, 3, conv.coded_length(n)).astype(np.float64) for n in lengths]
+    else:
+        llrs = [rng.normal(0.0, 1.0, conv.coded_length(n)) for n in lengths]
+    for n, y, got in zip(lengths, llrs, conv.viterbi(llrs), strict=True):
+        alone = conv.viterbi([y])[0]
+        assert got.dtype == np.uint8 and got.shape == (n,)
+        assert np.array_equal(got, alone)
