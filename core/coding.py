@@ -36,6 +36,16 @@ MAX_PAYLOAD_BITS = 256
 KEY_CODE_BITS = 32
 CRC_BITS = 32
 
+#: the bit positions of a 32-bit word, most significant first
+_WORD_SHIFTS = np.arange(31, -1, -1, dtype=np.uint64)
+
+
+def _word_bits(v: int) -> np.ndarray:
+    """The 32 bits of ``v`` (0 <= v < 2**32), most significant first, uint8 (one shift of an
+    array: a detection checks the CRC of every payload length of every decoded candidate)."""
+    return ((np.uint64(v) >> _WORD_SHIFTS) & np.uint64(1)).astype(np.uint8)
+
+
 def bits_to_str(bits: np.ndarray) -> str:
     return "".join("1" if b else "0" for b in np.asarray(bits).ravel())
 
@@ -43,14 +53,14 @@ def bits_to_str(bits: np.ndarray) -> str:
 def key_code(key: str | bytes) -> np.ndarray:
     """The 32-bit code derived from the key (used when no payload is given)."""
     v = derive(key, "meshmark-code") & 0xFFFFFFFF
-    return np.array([(v >> (KEY_CODE_BITS - 1 - i)) & 1 for i in range(KEY_CODE_BITS)], np.uint8)
+    return _word_bits(v)
 
 
 def crc_bits(bits: np.ndarray) -> np.ndarray:
     """CRC-32 over the payload length and bits, as 32 bits."""
     data = bytes([len(bits) - 1]) + np.packbits(bits).tobytes()
     v = zlib.crc32(data)
-    return np.array([(v >> (CRC_BITS - 1 - i)) & 1 for i in range(CRC_BITS)], np.uint8)
+    return _word_bits(v)
 
 
 def message_length(n_payload: int | None) -> int:
@@ -102,7 +112,7 @@ def compact_crc(n: int, data: np.ndarray) -> np.ndarray:
     """CRC-32 over a compact frame's payload length ``n`` and its data bits (payload + free)."""
     raw = b"\xc7" + bytes([n - 1]) + np.packbits(data).tobytes()
     v = zlib.crc32(raw)
-    return np.array([(v >> (CRC_BITS - 1 - i)) & 1 for i in range(CRC_BITS)], np.uint8)
+    return _word_bits(v)
 
 
 @lru_cache(maxsize=256)
