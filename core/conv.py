@@ -121,15 +121,16 @@ def viterbi(llrs: list[np.ndarray]) -> list[np.ndarray]:
     flat = back.reshape(top, b * STATES).tobytes()
     stride, shift = b * STATES, TAIL - 1
     out: list[np.ndarray] = [np.empty(0, np.uint8)] * b
-    for i, row_i in zip(order, range(b), strict=True):
-        lo, hi = int(begin[row_i]), top - TAIL
+    for row, i in enumerate(order):
+        lo = int(begin[row])
         bits = bytearray(top - lo)
-        state, at = 0, (top - 1) * stride + row_i * STATES
+        state, at = 0, (top - 1) * stride + row * STATES
         for t in range(top - 1, lo - 1, -1):
             bits[t - lo] = state & 1
             state = (state >> 1) | (flat[at + state] << shift)
             at -= stride
-        out[i] = np.frombuffer(bytes(bits[: hi - lo]), np.uint8).copy()
+        # the message: the steps before the tail (none for a trellis shorter than the tail)
+        out[i] = np.frombuffer(bits, np.uint8)[: max(top - TAIL - lo, 0)].copy()
     return out
 
 
