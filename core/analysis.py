@@ -19,7 +19,7 @@ reads bit 0 (outside the boundary), ``z < 0`` bit 1 (inside).  Constants are fie
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -252,6 +252,28 @@ def analyse_methods(vertices: np.ndarray, faces: np.ndarray, key: str | bytes, m
     sel = select_carriers(adj, prio, labels.usable)
     return carrier_statistics(v, adj, sel, lambda chosen: slot_hashes(labels, key, chosen), methods,
                               labels.regular, False, tol)
+
+
+def vertex_pool(vertices: np.ndarray, adj: Adjacency, labels: Labels, methods: Sequence[str],
+                tol: Tolerances = TOL) -> dict[str, Analysis]:
+    """Per method, the boundary and statistic of every usable vertex as if it were a carrier (the
+    scale test against the median of them all), for a search that selects carriers many times on
+    the same positions (:func:`pooled`); slot hashes 0."""
+    sel = np.flatnonzero(labels.usable)
+    v = np.asarray(vertices, np.float64)
+    return carrier_statistics(v, adj, sel, np.zeros(len(sel), np.uint64), methods, labels.regular, False, tol)
+
+
+def pooled(pool: Analysis, labels: Labels, key: str | bytes, prio: np.ndarray, adj: Adjacency) -> Analysis:
+    """The carriers :func:`select_carriers` chooses by ``prio``, read from ``pool``
+    (:func:`vertex_pool`) with their slot hashes under ``labels``: what :func:`analyse_methods`
+    gives but for the scale test (here against every usable vertex, there against the carriers)."""
+    sel = select_carriers(adj, prio, labels.usable)
+    if not len(pool.carriers) or not len(sel):
+        return pool.subset(np.zeros(0, np.int64))
+    at, held = _rows_in(pool.carriers, sel)
+    got = pool.subset(at[held])
+    return replace(got, slot_hash=slot_hashes(labels, key, got.carriers))
 
 
 def ring_boundaries(v: np.ndarray, adj: Adjacency, sel: np.ndarray

@@ -41,7 +41,7 @@ from core.coding import (
     whitening,
 )
 from core.reports import DetectResult
-from core.slots import assign_slots, bucketed_slots, ranked_by_default
+from core.slots import assign_slots, bucketed_slots, dense_rank, ranked_by_default
 
 #: the key-derived code is accepted with at most this many bit errors out of 32 (P = 7.7e-9)
 KEY_CODE_MAX_ERRORS = 1
@@ -158,9 +158,11 @@ def layer_slots(analyses: list[Analysis], L: int, ranked: bool | None = None,
     return [(a.slot_hash % np.uint64(L)).astype(np.int64) if a.geometric else next(dealt) for a in analyses]
 
 
-def agreement(analyses: list[Analysis], lengths: list[int]) -> float:
+def agreement(analyses: list[Analysis], lengths: list[int], ranked: bool = False) -> float:
     """How well the carriers' votes agree within their slots, at the best codeword length of
-    ``lengths`` (slots hashed, as geometric carriers are), in standard deviations of what random
+    ``lengths`` (slots hashed, as geometric carriers are; ``ranked``: ranked where the embedder
+    ranks them, :func:`~core.slots.ranked_by_default` over all the carriers, as one part's
+    connectivity carriers are), in standard deviations of what random
     votes give: ``sum (S^2 - sum v^2) / (mean v^2 sqrt(2 sum n (n - 1)))`` over the slots, with the
     adaptive soft votes (:data:`ADAPTIVE`) centred on their mean, at lengths where at least
     :data:`MIN_PAIRS` pairs of carriers share a slot.  The raw ratio, hard votes and no
@@ -177,11 +179,24 @@ def agreement(analyses: list[Analysis], lengths: list[int]) -> float:
         return 0.0
     votes = np.concatenate(_soft_values(analyses, ADAPTIVE))
     votes = votes - votes.mean()
-    best = 0.0
-    for L in sorted(set(lengths)):
-        z = _within_slots((h % np.uint64(L)).astype(np.int64), votes, L)
-        best = best if z is None else max(best, z)
-    return best
+    var = float((votes * votes).sum()) / len(votes)
+    # every length's slots at once: length k's slots are offset by the lengths before it
+    ls = np.array(sorted(set(lengths)), np.int64)
+    starts = np.concatenate([[0], np.cumsum(ls)[:-1]])
+    base = np.broadcast_to(h, (len(ls), len(h)))
+    by_rank = np.array([ranked and ranked_by_default(len(h), int(n)) for n in ls])
+    if by_rank.any():
+        base = np.where(by_rank[:, None], dense_rank(h).astype(np.uint64)[None, :], base)
+    slots = ((base % ls[:, None].astype(np.uint64)).astype(np.int64) + starts[:, None]).ravel()
+    n = np.bincount(slots, minlength=int(ls.sum())).astype(np.float64)
+    pairs = np.add.reduceat(n * (n - 1), starts)
+    ok = pairs >= MIN_PAIRS
+    if not ok.any() or var <= 0:
+        return 0.0
+    sums = np.bincount(slots, np.tile(votes, len(ls)), minlength=int(ls.sum()))
+    squares = np.add.reduceat(sums * sums, starts)[ok] - float((votes * votes).sum())
+    z = squares / (var * np.sqrt(2.0 * pairs[ok]))
+    return max(0.0, float(z.max()))
 
 
 #: fewest pairs of carriers sharing a slot for :func:`agreement` (and :func:`_agreement_z`) to
@@ -358,7 +373,11 @@ WIDER, NARROWER = "wider", "narrower"
 #: crop's cut changes the labels within the refinement's reach of it, so that those carriers read
 #: their bits in the wrong slots; read, and reported, as the relabelled views are
 INTERIOR = "interior"
-RELABELLED = (WIDER, NARROWER, INTERIOR)
+#: the connectivity carriers of a regular mesh in another frame of its fallback's cells
+#: (:func:`core.pipeline._turned`: a rotated surface of revolution); read, and reported, as the
+#: relabelled views are
+TURNED = "turned"
+RELABELLED = (WIDER, NARROWER, INTERIOR, TURNED)
 
 
 def _reported(layer: str) -> str:
@@ -444,7 +463,9 @@ def detect_views(views: list[View], key: str | bytes, expected: np.ndarray | Non
                     # decoded first (an untouched file marked with ellipsoids, a 2-bit payload: the
                     # planes view decoded a variant earlier, 1 of 54 in tests/core/test_engine.py)
                     answer = _which_method(found)
-                    answer = replace(answer, method=_marked_with(given, answer.method))
+                    # (a turned view's carriers are other vertices than the connectivity view's)
+                    answer = replace(answer, method=_marked_with(per_method if layer == TURNED else given,
+                                                                 answer.method))
                     return replace(answer, layer=_reported(layer))
         near += [replace(d.near, layer=_reported(layer)) for d in decoders if d.near is not None]
     # informed detection accepted by its p-value but without an exact CRC match

@@ -16,9 +16,11 @@ from core.analysis import (
     Analysis,
     analyse_geometric,
     analyse_methods,
+    pooled,
     prepare,
     priorities,
     tied_pairs,
+    vertex_pool,
 )
 from core.coding import (
     COMPACT_BELOW,
@@ -38,6 +40,7 @@ from core.detection import (
     GEOMETRY,
     INTERIOR,
     NARROWER,
+    TURNED,
     WIDER,
     View,
     agreement,
@@ -69,8 +72,10 @@ from core.sync import (
     MIN_BOUNDARY_DEGREE,
     MIN_DEGREE,
     Labels,
+    cell_frame,
     has_step,
     stepped_labels,
+    turned_labels,
     vertex_labels,
 )
 from core.tolerances import TOL, Tolerances
@@ -242,6 +247,54 @@ def _relabelled(doc: MeshDocument, parts: list[int], key: str | bytes, layers: _
         for m, a in analyse_methods(p.vertices, p.faces, key, list(out), adj=adj, labels=w).items():
             out[m][k] = a
     return out
+
+
+#: a regular part is searched for its turned frame (:func:`_turned`) while its vertices times the
+#: frames tried stay within this (the capsule: 5,204 vertices x 201 frames)
+TURN_WORK = 1 << 22
+
+
+def _frames_tried(vertices: np.ndarray, labels: Labels) -> int:
+    """The other frames :func:`_turned` tries on a part: those of its fallback's frame
+    (:attr:`~core.sync.CellFrame.others`) on a regular part within :data:`TURN_WORK`, else 0
+    (geometry and connectivity only, so that the false-positive figure counts the view exactly
+    when it is made)."""
+    if not labels.regular or len(vertices) > TURN_WORK:
+        return 0
+    frames = len(cell_frame(vertices).others)
+    return frames if len(vertices) * frames <= TURN_WORK else 0
+
+
+def _turned(doc: MeshDocument, parts: list[int], key: str | bytes, layers: _Layers, lengths: list[int]
+            ) -> dict[str, list[Analysis]]:
+    """The connectivity view with every regular part whose fallback frame leaves an angle or a sign to
+    the file's axes (:attr:`~core.sync.CellFrame.others`: a surface of revolution, a symmetric part)
+    analysed in the other frame whose carriers' votes agree best within their slots
+    (:func:`~core.detection.agreement`, slots ranked where the embedder ranks them), within
+    :data:`TURN_WORK`; empty when no part has such frames.  A rotated file: the capsule's frame is
+    its axis and one of the 100 turns of its segments, which the file's axes chose at embedding."""
+    out: dict[str, list[Analysis]] = {m: list(a) for m, a in layers.local.items()}
+    methods = list(out)
+    turned = False
+    for k, (i, adj, lab) in enumerate(zip(parts, layers.adjs, layers.labels, strict=True)):
+        v = doc.parts[i].vertices
+        if not _frames_tried(v, lab):
+            continue
+        # one method's votes choose the frame: both read the offset along e1, and on the capsule
+        # either method's chose the embedder's frame for files marked with either (6 of 6)
+        pool = vertex_pool(v, adj, lab, methods[:1])[methods[0]]
+        best, score = None, -np.inf
+        for frame in turned_labels(v, adj, lab):
+            chosen = pooled(pool, frame, key, priorities(v, adj, frame, key), adj)
+            s = agreement([chosen], lengths, ranked=True)
+            if s > score:
+                best, score = frame, s
+        if best is None:
+            continue
+        for m, a in analyse_methods(v, doc.parts[i].faces, key, methods, adj=adj, labels=best).items():
+            out[m][k] = a
+        turned = True
+    return out if turned else {}
 
 
 def _interior(layers: _Layers) -> dict[str, list[Analysis]]:
@@ -1143,6 +1196,8 @@ def _read_views(doc: MeshDocument, parts: list[int], key: str | bytes, options: 
         if any(has_step(lab, step) for lab in layers.labels):
             views.append((layer, partial(_relabelled, doc, parts, key, layers, step)))
     views += _interior_view(layers)
+    if any(_frames_tried(doc.parts[i].vertices, lab) for i, lab in zip(parts, layers.labels, strict=True)):
+        views.append((TURNED, partial(_turned, doc, parts, key, layers, _codeword_lengths(expected))))
     return detect_views(views, key, expected)
 
 

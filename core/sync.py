@@ -17,6 +17,7 @@ to one head vertex.  Both change when carriers move, and cropping removes the he
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -157,24 +158,145 @@ def tie_broken(priority: np.ndarray, vertices: np.ndarray, adj: Adjacency) -> np
     return np.maximum(high | q, np.uint64(1))
 
 
-def frame_cells(points: np.ndarray, vertices: np.ndarray, cell: float) -> np.ndarray:
-    """Hash of the grid cell of ``points`` in a normalised frame of the mesh ``vertices``.
+#: two second moments of a regular mesh's vertices within this share of the largest are a
+#: degenerate pair (a surface of revolution, a cylinder); all three alike: no frame but the file's
+FRAME_GAP = 0.1
+#: a third moment under this share of ``r^3`` does not fix the sign of its axis
+FRAME_SKEW = 1e-3
+#: the angle of a degenerate pair: the vertices' angular harmonics about the unique axis (weighted
+#: by the distance to it) up to FRAME_HARMONICS; the lowest within FRAME_FUNDAMENTAL of the strongest
+#: is the pair's (the capsule's 100 segments read 1.0 at m = 100 and at 200), and the strongest must
+#: reach FRAME_HARMONIC_MIN, else the pair has no angle and the file's axes stay
+FRAME_HARMONICS, FRAME_FUNDAMENTAL, FRAME_HARMONIC_MIN = 256, 0.9, 0.5
+#: angle bins of the histogram whose FFT ranks the harmonics (the chosen one is then summed exactly)
+FRAME_BINS = 4096
 
-    The frame: centroid, RMS radius as unit, principal axes when the three second moments are
-    well separated (>= 10 % apart) with signs fixed by the third moments, else the file's axes.
-    """
+
+@dataclass(frozen=True)
+class CellFrame:
+    """A normalised frame of a regular mesh's vertices: ``origin``, ``unit`` (RMS radius) and
+    ``axes`` (rows).  ``others``: the frames the detector also tries, where this one rests on
+    what a rotation changes (:func:`cell_frame`)."""
+
+    origin: np.ndarray
+    unit: float
+    axes: np.ndarray
+    others: tuple[np.ndarray, ...] = ()
+
+
+#: the file direction that signs the axes a third moment leaves loose and from which the turns of a
+#: degenerate pair are counted: not along nor across the axes of usual files (file axes, their
+#: diagonals), so that the choice does not jump when carriers move (the largest coordinate, or the
+#: file axis least along the unique one, did on a cylinder: two file axes tie there)
+FRAME_REFERENCE = np.array([3.0, 2.0, 1.0]) / np.sqrt(14.0)
+
+
+def _file_aligned(axis: np.ndarray) -> np.ndarray:
+    """``axis`` with the sign that puts it along :data:`FRAME_REFERENCE`."""
+    return axis if axis @ FRAME_REFERENCE >= 0 else -axis
+
+
+def _harmonic(x: np.ndarray, p: np.ndarray, q: np.ndarray) -> tuple[int, float] | None:
+    """The pair's harmonic ``m`` and its phase, about the plane ``(p, q)`` of the centred points
+    ``x``: ranked on a histogram of the angles, the chosen one summed exactly; None below
+    :data:`FRAME_HARMONIC_MIN`."""
+    a, b = x @ p, x @ q
+    rho = np.hypot(a, b)
+    total = float(rho.sum())
+    if not total > 0:
+        return None
+    theta = np.arctan2(b, a)
+    bins = (np.floor((theta + np.pi) / (2.0 * np.pi) * FRAME_BINS).astype(np.int64)) % FRAME_BINS
+    hist = np.bincount(bins, rho, minlength=FRAME_BINS)
+    mag = np.abs(np.fft.fft(hist)[1:FRAME_HARMONICS + 1]) / total
+    if mag.max() < FRAME_HARMONIC_MIN:
+        return None
+    m = int(np.flatnonzero(mag >= FRAME_FUNDAMENTAL * mag.max())[0]) + 1
+    s = complex((rho * np.exp(1j * m * theta)).sum())
+    if abs(s) < FRAME_HARMONIC_MIN * total:
+        return None
+    return m, float(np.angle(s)) / m
+
+
+def cell_frame(vertices: np.ndarray) -> CellFrame:
+    """The frame of the geometric fallback: centroid, RMS radius as unit, and the principal axes.
+
+    * Three separate second moments (>= :data:`FRAME_GAP` apart): the principal axes, each signed
+      by its third moment; where all three fix their signs this is all (as before the candidates).
+      An axis whose third moment does not (:data:`FRAME_SKEW`: a symmetric part) takes the sign
+      along :data:`FRAME_REFERENCE`, and the last such one the sign that makes the frame
+      right-handed; the detector tries the other signs of all but the last.
+    * A degenerate pair beside a unique axis (a surface of revolution): the unique axis (signed
+      as above) and, about it, the angle of the vertices' strongest angular harmonic ``m``
+      (:func:`_harmonic`), which fixes it up to ``2 pi / m``: the embedder takes the turn nearest
+      :data:`FRAME_REFERENCE`, the detector tries the other ``m - 1`` (and the
+      unique axis turned over, when its sign is not fixed).  Without a harmonic: the file's axes.
+    * Three alike (a sphere, a cube): the file's axes.
+
+    Wherever the frame rests on the file's axes, the detector also tries the file's axes
+    themselves (what the fallback used for every such mesh before the candidates)."""
     c = vertices.mean(axis=0)
     x = vertices - c
     r = float(np.sqrt((x * x).sum(axis=1).mean())) or 1.0
-    cov = x.T @ x / len(x)
-    w, e = np.linalg.eigh(cov)
+    eye = np.eye(3)
+    w, e = np.linalg.eigh(x.T @ x / len(x))
     gaps = np.diff(w) / max(w[-1], 1e-300)
-    if np.all(gaps > 0.1):
-        skew = ((x @ e) ** 3).mean(axis=0)
-        e = e * np.sign(skew) if np.all(np.abs(skew) > 1e-3 * r**3) else np.eye(3)
-    else:
-        e = np.eye(3)
-    q = np.floor(((points - c) @ e) / (r * cell) + GRID_OFFSET).astype(np.int64)
+    axes = e.T.copy()
+    skew = ((x @ e) ** 3).mean(axis=0)
+    sure = np.abs(skew) > FRAME_SKEW * r**3
+    if np.all(gaps > FRAME_GAP):
+        if sure.all():
+            return CellFrame(c, r, axes * np.sign(skew)[:, None])
+        loose = np.flatnonzero(~sure)
+        for k in range(3):
+            axes[k] = axes[k] * np.sign(skew[k]) if sure[k] else _file_aligned(axes[k])
+        if np.linalg.det(axes) < 0:
+            axes[loose[-1]] = -axes[loose[-1]]
+        others = [eye]
+        free = loose[:-1]
+        for flips in range(1, 1 << len(free)):
+            alt = axes.copy()
+            for bit, k in enumerate(free):
+                if flips >> bit & 1:
+                    alt[k] = -alt[k]
+            # the last loose axis keeps the frame right-handed
+            if np.linalg.det(alt) < 0:
+                alt[loose[-1]] = -alt[loose[-1]]
+            others.append(alt)
+        return CellFrame(c, r, axes, tuple(others))
+    if np.all(gaps <= FRAME_GAP):
+        return CellFrame(c, r, eye)
+    unique = 2 if gaps[0] <= FRAME_GAP else 0
+    u = axes[unique] * np.sign(skew[unique]) if sure[unique] else _file_aligned(axes[unique])
+    # the turns are counted from the reference direction
+    p = FRAME_REFERENCE - (FRAME_REFERENCE @ u) * u
+    p /= np.linalg.norm(p)
+    q = np.cross(u, p)
+    got = _harmonic(x, p, q)
+    if got is None:
+        return CellFrame(c, r, eye)
+    m, phase = got
+    pair = [0, 1] if unique == 2 else [1, 2]
+
+    def turned(angle: float, sign: float) -> np.ndarray:
+        e0 = np.cos(angle) * p + np.sin(angle) * q
+        out = np.empty((3, 3))
+        out[unique], out[pair[0]] = sign * u, e0
+        out[pair[1]] = np.cross(out[unique], e0) if unique == 2 else np.cross(e0, out[unique])
+        return out
+
+    turns = phase + 2.0 * np.pi * np.arange(m) / m
+    signs = (1.0,) if sure[unique] else (1.0, -1.0)
+    frames = [turned(t, s) for s in signs for t in turns]
+    return CellFrame(c, r, frames[0], (eye, *frames[1:]))
+
+
+def frame_cells(points: np.ndarray, frame: CellFrame, cell: float, axes: np.ndarray | None = None
+                ) -> np.ndarray:
+    """Hash of the grid cell of ``points`` in ``frame`` (``axes``: one of its ``others`` instead of
+    its own axes), cells of ``cell`` RMS radii."""
+    e = (frame.axes if axes is None else axes).T
+    q = np.floor(((points - frame.origin) @ e) / (frame.unit * cell) + GRID_OFFSET).astype(np.int64)
     h = mix64(q[:, 0].view(np.uint64))
     h = combine(h, q[:, 1].view(np.uint64))
     return combine(h, q[:, 2].view(np.uint64))
@@ -265,14 +387,29 @@ def neighbour_means(vertices: np.ndarray, adj: Adjacency) -> np.ndarray:
     return adj.ring_sum(vertices) / deg[:, None]
 
 
-def _fallback_cells(vertices: np.ndarray, adj: Adjacency) -> np.ndarray:
+def _fallback_cells(vertices: np.ndarray, adj: Adjacency, frame: CellFrame | None = None,
+                    axes: np.ndarray | None = None) -> np.ndarray:
     """Cell hash of every vertex's neighbour mean (neighbour-only, so a carrier's own label
-    does not move with it)."""
+    does not move with it) in ``frame`` (default: :func:`cell_frame` of ``vertices``) turned to
+    ``axes``, when given."""
     n = len(vertices)
     mu = neighbour_means(vertices, adj)
     # cell size from the vertex count only: the median edge length moves with the carriers
     # and a 0.1 % change of the cell shifts far cells by a whole cell
-    return frame_cells(mu, vertices, CELLS_PER_RADIUS / np.sqrt(max(n, 1)))
+    frame = cell_frame(vertices) if frame is None else frame
+    return frame_cells(mu, frame, CELLS_PER_RADIUS / np.sqrt(max(n, 1)), axes)
+
+
+def turned_labels(vertices: np.ndarray, adj: Adjacency, labels: Labels) -> Iterator[Labels]:
+    """``labels`` of a regular mesh with the fallback's cells in each frame the detector also
+    tries (:attr:`CellFrame.others`: a rotated file's frame where the mesh's moments leave a sign
+    or an angle to the file's axes); nothing for other meshes."""
+    if not labels.regular:
+        return
+    frame = cell_frame(vertices)
+    for axes in frame.others:
+        cells = _fallback_cells(vertices, adj, frame, axes)
+        yield replace(labels, labels=combine(labels.connectivity, cells))
 
 
 def select_carriers(adj: Adjacency, priority: np.ndarray, usable: np.ndarray) -> np.ndarray:
