@@ -82,6 +82,16 @@ def adaptive_threshold(z: np.ndarray) -> float:
 #: threshold with clipped soft votes, the adaptive threshold weighted by the carrier's scale, and
 #: the same on the signed statistic (:func:`core.analysis.signed_statistic`)
 HARD, ADAPTIVE, SCALED, SIGNED = 0, 1, 2, 3
+#: ...and the embedder's boundary with hard votes from the carriers nearest their boundaries only
+#: (:data:`NEAR_SHARE` of them, by ``|z| s``): under an RMS budget the embedder leaves out the
+#: largest moves, so a carrier far from its boundary reads its bit only by chance (the gear marked
+#: with ellipsoids: 0.50-0.66 right in the far six tenths, 0.87-0.95 in the near four, 0.70 in all)
+#: and a cropped piece has too few carriers to outvote them
+NEAR = 4
+#: the share of the carriers (nearest their boundaries) that vote in the NEAR variant: crops of the
+#: gear (ellipsoids, to 50 %) and of the rocker arm (ellipsoids, to 25 %), 4 each, read 4 + 4 at
+#: 0.4, 3 + 3 at 0.3 and at 0.5
+NEAR_SHARE = 0.4
 #: soft votes are clipped at this many median deviations in the scaled variant
 SCALED_CLIP = 3.0
 
@@ -100,6 +110,16 @@ def _soft_values(analyses: list[Analysis], adaptive: int) -> list[np.ndarray]:
     (:func:`core.analysis.signed_statistic`; an analysis without it reads as :data:`SCALED`).
     """
     out = []
+    if adaptive == NEAR:
+        for a in analyses:
+            d = np.abs(a.z) * a.scale
+            live = np.ones(len(d), bool) if a.muted is None else ~a.muted
+            keep = live & (d <= np.quantile(d[live], NEAR_SHARE)) if live.any() else live
+            x = np.where(a.z > 0, 1.0, -1.0)
+            # centred over the voters, so that the centring of every live carrier's vote
+            # (:func:`_votes`) leaves the others at 0
+            out.append(np.where(keep, x - (x[keep].mean() if keep.any() else 0.0), 0.0))
+        return out
     for a in analyses:
         stat = a.signed if adaptive == SIGNED and a.signed is not None else a.z
         live = stat if a.muted is None else stat[~a.muted]
@@ -335,7 +355,10 @@ def view_variants(layer: str, per_method: dict[str, list[Analysis]] | None) -> l
     sides), and the signed variant needs :data:`SIGNED_FROM` connectivity carriers (a view made
     lazily, ``per_method`` None, counts it).  With both methods a file with the geometric layer
     tries 12 + 8 + 6 candidates per length, as many as before the signed variant (10 + 10 + 6),
-    and 2 more for each relabelled view (:data:`RELABELLED`: the embedder's own variant only)."""
+    and 2 more for each relabelled view (:data:`RELABELLED`: the embedder's own variant only), 4
+    for the interior view (also :data:`NEAR`: a crop's piece of a mesh marked at its RMS budget)."""
+    if layer == INTERIOR:
+        return [VARIANTS[0], (NEAR, None)]
     if layer in RELABELLED:
         return [VARIANTS[0]]
     many = layer != GEOMETRY and (per_method is None or any(
@@ -371,7 +394,8 @@ BOTH, CONNECTIVITY, GEOMETRY = "both", "connectivity", "geometry"
 WIDER, NARROWER = "wider", "narrower"
 #: the connectivity carriers with those near a boundary muted (:func:`core.pipeline._interior`): a
 #: crop's cut changes the labels within the refinement's reach of it, so that those carriers read
-#: their bits in the wrong slots; read, and reported, as the relabelled views are
+#: their bits in the wrong slots; read, and reported, as the relabelled views are, and also with
+#: the votes of the carriers nearest their boundaries only (:data:`NEAR`)
 INTERIOR = "interior"
 #: the connectivity carriers of a regular mesh in another frame of its fallback's cells
 #: (:func:`core.pipeline._turned`: a rotated surface of revolution); read, and reported, as the

@@ -273,3 +273,27 @@ def test_agreement_tells_a_weak_mark_from_random_votes_over_every_length(seed: i
     marked = detection.agreement([_geometric_reading(800, codeword_length(32), seed, True)], lengths)
     random = detection.agreement([_geometric_reading(800, codeword_length(32), seed + 100, False)], lengths)
     assert marked > 2 * random
+
+
+def test_the_near_variant_reads_the_carriers_nearest_their_boundaries_only() -> None:
+    """Half the carriers read the codeword at small ``|z| s``, the other half (far from their
+    boundaries, as the moves an RMS budget leaves out) at random: every vote reads the codeword
+    badly, the NEAR variant's votes (the nearest 0.4, centred, the others 0) read it exactly."""
+    payload = np.array([1, 0, 1, 1, 0, 0, 1, 0, 1, 1, 0, 1], np.uint8)
+    word = encode(KEY, payload)
+    a = carriers_reading(word, 1400, 5)
+    rng = np.random.default_rng(6)
+    far = rng.random(len(a.z)) < 0.5
+    z = np.where(far, rng.choice([-1.0, 1.0], len(a.z)) * rng.uniform(2.0, 4.0, len(a.z)), a.z)
+    a = replace(a, z=z, scale=rng.uniform(0.5, 1.5, len(z)))
+    (votes,) = _soft_values([a], detection.NEAR)
+    d = np.abs(z) * a.scale
+    voters = votes != 0
+    assert voters.sum() == round(detection.NEAR_SHARE * len(z))
+    assert d[voters].max() <= d[~voters].min() and not (far & voters).any()
+    assert abs(votes.sum()) < 1e-9
+    slots = assign_slots([a.slot_hash], len(word))[0]
+    assert np.all((votes[voters] > 0) == (word[slots[voters]] == 0))
+    # the interior view tries the variant (a view with boundaries: a crop)
+    assert (detection.NEAR, None) in detection.view_variants(detection.INTERIOR, None)
+    assert (detection.NEAR, None) not in detection.view_variants(detection.CONNECTIVITY, None)

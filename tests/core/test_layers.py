@@ -195,8 +195,9 @@ def test_a_piece_whose_labels_go_a_step_further_reads_one_step_narrower(cropped,
 
 def test_the_wider_and_interior_views_count_in_the_false_positive_figure(cropped, monkeypatch) -> None:
     """Made only when the others do not read, the wider view and the interior one (the piece has a
-    boundary) still count in every answer's union bound: one candidate per method each (the
-    embedder's decoding), 2 + 2 beside the 26 of the others with both methods."""
+    boundary) still count in every answer's union bound: one candidate per method for the wider
+    view (the embedder's decoding), two for the interior one (also its NEAR variant), 2 + 4 beside
+    the 26 of the others with both methods."""
     cv, cf = cropped
     res = detect_mesh([(cv, cf)], KEY, payload=PAYLOAD)
     without = {}
@@ -210,9 +211,9 @@ def test_the_wider_and_interior_views_count_in_the_false_positive_figure(cropped
             without[name] = detect_mesh([(cv, cf)], KEY, payload=PAYLOAD)
     assert res.detected and all(r.detected for r in without.values())
     fpp = res.false_positive_probability
-    assert fpp / without["wider"].false_positive_probability == pytest.approx(30 / 28, rel=1e-6)
-    assert fpp / without["interior"].false_positive_probability == pytest.approx(30 / 28, rel=1e-6)
-    assert fpp / without["both"].false_positive_probability == pytest.approx(30 / 26, rel=1e-6)
+    assert fpp / without["wider"].false_positive_probability == pytest.approx(32 / 30, rel=1e-6)
+    assert fpp / without["interior"].false_positive_probability == pytest.approx(32 / 28, rel=1e-6)
+    assert fpp / without["both"].false_positive_probability == pytest.approx(32 / 26, rel=1e-6)
 
 
 @pytest.mark.parametrize("split", [False, True])
