@@ -250,7 +250,7 @@ def _relabelled(doc: MeshDocument, parts: list[int], key: str | bytes, layers: _
 
 
 #: a regular part is searched for its turned frame (:func:`_turned`) while its vertices times the
-#: frames tried stay within this (the capsule: 5,204 vertices x 201 frames)
+#: frames tried stay within this (the capsule: 5,204 vertices x 200 frames)
 TURN_WORK = 1 << 22
 
 
@@ -1183,7 +1183,10 @@ def _read_views(doc: MeshDocument, parts: list[int], key: str | bytes, options: 
     (:func:`~core.sync.has_step`, connectivity only, so the figure counts these views exactly when
     they are made; :func:`_relabelled`): cropped pieces of meshes such as the Beast and the Ogre.
     Then, where a part has a boundary, the connectivity layer without the carriers next to it
-    (:func:`_interior`: a crop's cut).  ``layers``: the parts' :func:`_layers`, when the caller has them."""
+    (:func:`_interior`: a crop's cut).  Last, where a regular part's fallback frame leaves a sign or
+    an angle to the file's axes, the connectivity layer in the other frame that agrees best
+    (:func:`_turned`: a rotated surface of revolution).  ``layers``: the parts' :func:`_layers`,
+    when the caller has them."""
     methods, expected = options.detect_methods, options.payload_bits
     if layers is None:
         layers = _layers(doc, parts, key, methods, analysed)
