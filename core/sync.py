@@ -268,8 +268,11 @@ def cell_frame(vertices: np.ndarray) -> CellFrame:
         return CellFrame(c, r, eye)
     unique = 2 if gaps[0] <= FRAME_GAP else 0
     u = axes[unique] * np.sign(skew[unique]) if sure[unique] else _file_aligned(axes[unique])
-    # the turns are counted from the reference direction
+    # the turns are counted from the reference direction (a file axis where the unique axis lies
+    # along it)
     p = FRAME_REFERENCE - (FRAME_REFERENCE @ u) * u
+    if np.linalg.norm(p) < 1e-3:
+        p = eye[int(np.argmin(np.abs(u)))] - u[int(np.argmin(np.abs(u)))] * u
     p /= np.linalg.norm(p)
     q = np.cross(u, p)
     got = _harmonic(x, p, q)

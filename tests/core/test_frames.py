@@ -121,3 +121,15 @@ def test_a_file_marked_in_the_file_axes_still_reads(monkeypatch) -> None:
         assert detect_mesh([(marked, f)], "old-key").detected
     res = detect_mesh([(marked, f)], "old-key")
     assert res.detected and res.layer == "connectivity"
+
+
+def test_a_unique_axis_along_the_reference_direction_still_gets_a_frame() -> None:
+    # the turns are counted from FRAME_REFERENCE projected across the unique axis: along it, a file axis
+    v = _cylinder(40)
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, sync.FRAME_REFERENCE)
+    angle = np.arccos(z @ sync.FRAME_REFERENCE)
+    rot = Rotation.from_rotvec(axis / np.linalg.norm(axis) * angle).as_matrix()
+    frame = cell_frame(v @ rot.T)
+    assert np.all(np.isfinite(frame.axes)) and len(frame.others) == 80
+    assert any(np.allclose(c, cell_frame(v).axes @ rot.T, atol=1e-6) for c in _frames(frame))
