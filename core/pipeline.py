@@ -71,6 +71,7 @@ from core.sync import (
     MAX_DEGREE,
     MIN_BOUNDARY_DEGREE,
     MIN_DEGREE,
+    CellFrame,
     Labels,
     cell_frame,
     has_step,
@@ -254,47 +255,44 @@ def _relabelled(doc: MeshDocument, parts: list[int], key: str | bytes, layers: _
 TURN_WORK = 1 << 22
 
 
-def _frames_tried(vertices: np.ndarray, labels: Labels) -> int:
-    """The other frames :func:`_turned` tries on a part: those of its fallback's frame
-    (:attr:`~core.sync.CellFrame.others`) on a regular part within :data:`TURN_WORK`, else 0
+def _turn_frame(vertices: np.ndarray, labels: Labels) -> CellFrame | None:
+    """The fallback's frame of a part that :func:`_turned` searches: a regular part whose frame has
+    other frames (:attr:`~core.sync.CellFrame.others`), within :data:`TURN_WORK`; else None
     (geometry and connectivity only, so that the false-positive figure counts the view exactly
     when it is made)."""
     if not labels.regular or len(vertices) > TURN_WORK:
-        return 0
-    frames = len(cell_frame(vertices).others)
-    return frames if len(vertices) * frames <= TURN_WORK else 0
+        return None
+    frame = cell_frame(vertices)
+    return frame if frame.others and len(vertices) * len(frame.others) <= TURN_WORK else None
 
 
-def _turned(doc: MeshDocument, parts: list[int], key: str | bytes, layers: _Layers, lengths: list[int]
-            ) -> dict[str, list[Analysis]]:
-    """The connectivity view with every regular part whose fallback frame leaves an angle or a sign to
-    the file's axes (:attr:`~core.sync.CellFrame.others`: a surface of revolution, a symmetric part)
-    analysed in the other frame whose carriers' votes agree best within their slots
-    (:func:`~core.detection.agreement`, slots ranked where the embedder ranks them), within
-    :data:`TURN_WORK`; empty when no part has such frames.  A rotated file: the capsule's frame is
-    its axis and one of the 100 turns of its segments, which the file's axes chose at embedding."""
+def _turned(doc: MeshDocument, parts: list[int], key: str | bytes, layers: _Layers,
+            frames: list[CellFrame | None], lengths: list[int]) -> dict[str, list[Analysis]]:
+    """The connectivity view with every part that has a :func:`_turn_frame` (``frames``, per part:
+    a regular part whose fallback frame leaves an angle or a sign to the file's axes, a surface of
+    revolution, a symmetric part) analysed in the other frame whose carriers' votes agree best
+    within their slots (:func:`~core.detection.agreement`, slots ranked where the embedder ranks
+    them); empty when no part has such a frame.  A rotated file: the capsule's frame is its axis
+    and one of the 100 turns of its segments, which the file's axes chose at embedding."""
     out: dict[str, list[Analysis]] = {m: list(a) for m, a in layers.local.items()}
     methods = list(out)
-    turned = False
-    for k, (i, adj, lab) in enumerate(zip(parts, layers.adjs, layers.labels, strict=True)):
-        v = doc.parts[i].vertices
-        if not _frames_tried(v, lab):
+    for k, (i, adj, lab, frame) in enumerate(zip(parts, layers.adjs, layers.labels, frames, strict=True)):
+        if frame is None:
             continue
+        v = doc.parts[i].vertices
         # one method's votes choose the frame: both read the offset along e1, and on the capsule
         # either method's chose the embedder's frame for files marked with either (6 of 6)
         pool = vertex_pool(v, adj, lab, methods[:1])[methods[0]]
         best, score = None, -np.inf
-        for frame in turned_labels(v, adj, lab):
-            chosen = pooled(pool, frame, key, priorities(v, adj, frame, key), adj)
+        for turned in turned_labels(v, adj, lab, frame):
+            chosen = pooled(pool, turned, key, priorities(v, adj, turned, key), adj)
             s = agreement([chosen], lengths, ranked=True)
             if s > score:
-                best, score = frame, s
-        if best is None:
-            continue
+                best, score = turned, s
+        # (frame.others is not empty: best is a frame)
         for m, a in analyse_methods(v, doc.parts[i].faces, key, methods, adj=adj, labels=best).items():
             out[m][k] = a
-        turned = True
-    return out if turned else {}
+    return out if any(f is not None for f in frames) else {}
 
 
 def _interior(layers: _Layers) -> dict[str, list[Analysis]]:
@@ -1199,8 +1197,9 @@ def _read_views(doc: MeshDocument, parts: list[int], key: str | bytes, options: 
         if any(has_step(lab, step) for lab in layers.labels):
             views.append((layer, partial(_relabelled, doc, parts, key, layers, step)))
     views += _interior_view(layers)
-    if any(_frames_tried(doc.parts[i].vertices, lab) for i, lab in zip(parts, layers.labels, strict=True)):
-        views.append((TURNED, partial(_turned, doc, parts, key, layers, _codeword_lengths(expected))))
+    frames = [_turn_frame(doc.parts[i].vertices, lab) for i, lab in zip(parts, layers.labels, strict=True)]
+    if any(f is not None for f in frames):
+        views.append((TURNED, partial(_turned, doc, parts, key, layers, frames, _codeword_lengths(expected))))
     return detect_views(views, key, expected)
 
 

@@ -403,13 +403,15 @@ def _fallback_cells(vertices: np.ndarray, adj: Adjacency, frame: CellFrame | Non
     return frame_cells(mu, frame, CELLS_PER_RADIUS / np.sqrt(max(n, 1)), axes)
 
 
-def turned_labels(vertices: np.ndarray, adj: Adjacency, labels: Labels) -> Iterator[Labels]:
+def turned_labels(vertices: np.ndarray, adj: Adjacency, labels: Labels, frame: CellFrame | None = None
+                  ) -> Iterator[Labels]:
     """``labels`` of a regular mesh with the fallback's cells in each frame the detector also
-    tries (:attr:`CellFrame.others`: a rotated file's frame where the mesh's moments leave a sign
-    or an angle to the file's axes); nothing for other meshes."""
+    tries (:attr:`CellFrame.others` of ``frame``, default :func:`cell_frame` of ``vertices``: a
+    rotated file's frame where the mesh's moments leave a sign or an angle to the file's axes);
+    nothing for other meshes."""
     if not labels.regular:
         return
-    frame = cell_frame(vertices)
+    frame = cell_frame(vertices) if frame is None else frame
     for axes in frame.others:
         cells = _fallback_cells(vertices, adj, frame, axes)
         yield replace(labels, labels=combine(labels.connectivity, cells))
