@@ -214,9 +214,8 @@ def agreement(analyses: list[Analysis], lengths: list[int], ranked: bool = False
     if not ok.any() or var <= 0:
         return 0.0
     sums = np.bincount(slots, np.tile(votes, len(ls)), minlength=int(ls.sum()))
-    squares = np.add.reduceat(sums * sums, starts)[ok] - float((votes * votes).sum())
-    z = squares / (var * np.sqrt(2.0 * pairs[ok]))
-    return max(0.0, float(z.max()))
+    z = _standardised(np.add.reduceat(sums * sums, starts)[ok], pairs[ok], float((votes * votes).sum()), var)
+    return max(0.0, float(np.max(z)))
 
 
 #: fewest pairs of carriers sharing a slot for :func:`agreement` (and :func:`_agreement_z`) to
@@ -266,7 +265,16 @@ def _within_slots(slots: np.ndarray, v: np.ndarray, L: int) -> float | None:
     if var <= 0:
         return 0.0
     sums = np.bincount(slots, v, minlength=L)
-    return float((sums * sums).sum() - (v * v).sum()) / (var * np.sqrt(2.0 * pairs))
+    return float(_standardised(float((sums * sums).sum()), pairs, float((v * v).sum()), var))
+
+
+def _standardised(squares: np.ndarray | float, pairs: np.ndarray | float, power: float, var: float
+                  ) -> np.ndarray | float:
+    """``(sum_j S_j^2 - sum v^2) / (mean v^2 sqrt(2 sum_j n_j (n_j - 1)))`` from the slots' summed
+    squared sums ``squares`` and pair counts ``pairs`` (one length's, or an array of lengths'),
+    ``power = sum v^2`` and ``var = mean v^2``: the within-slot agreement in standard deviations
+    of random votes' (:func:`_within_slots`, :func:`agreement`)."""
+    return (squares - power) / (var * np.sqrt(2.0 * pairs))
 
 
 def _slot_sums(slots: np.ndarray, raw: np.ndarray, sign: np.ndarray) -> np.ndarray:
